@@ -1,0 +1,4 @@
+"""`python -m dofsynth` is the `dofsynth` console script."""
+from dofsynth.cli import main
+
+raise SystemExit(main())

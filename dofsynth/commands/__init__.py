@@ -1,0 +1,1 @@
+"""One module per `dofsynth` subcommand; each defines `register(subparsers)` (see dofsynth.cli)."""

@@ -1,0 +1,165 @@
+"""Reading and writing the file formats of dofsynth: sRGB images (PNG, JPEG, TIFF, WebP) and
+float32 depth (OpenEXR), to paths and to bytes (for tar shard members).
+
+Images come back as float32 in [0, 1], still sRGB-encoded, shaped (H, W, C) with C in
+{1, 2, 3, 4} in RGB(A) order; `load_linear_rgba` converts to linear light. EXR files are
+taken to hold linear values (images) or normalized disparity (depth).
+"""
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import OpenEXR
+
+from dofsynth.color import srgb_to_linear, to_uint8
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".exr")
+
+
+class ImageReadError(ValueError):
+    """An image file that cannot be decoded; the message names the file."""
+
+
+def _to_rgb_order(img: np.ndarray) -> np.ndarray:
+    if img.ndim == 2:
+        return img[:, :, None]
+    if img.shape[2] == 3:
+        return img[:, :, ::-1]
+    if img.shape[2] == 4:
+        return img[:, :, [2, 1, 0, 3]]
+    return img
+
+
+def _normalise(img: np.ndarray, name: str) -> np.ndarray:
+    if img.dtype == np.uint8:
+        return img.astype(np.float32) / 255.0
+    if img.dtype == np.uint16:
+        return img.astype(np.float32) / 65535.0
+    if img.dtype in (np.float32, np.float64, np.float16):
+        return img.astype(np.float32)
+    raise ImageReadError(f"{name}: unsupported pixel type {img.dtype}")
+
+
+def decode_image(data: bytes, name: str = "<bytes>") -> np.ndarray:
+    """Decode PNG/JPEG/TIFF/WebP bytes (8 or 16 bit) to float32 (H, W, C) in [0, 1]."""
+    buf = np.frombuffer(data, dtype=np.uint8)
+    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    if img is None:
+        raise ImageReadError(f"{name}: not a readable image (corrupt, truncated or unknown format)")
+    return _normalise(np.ascontiguousarray(_to_rgb_order(img)), name)
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Read an image file to float32 (H, W, C) in [0, 1] (EXR: the stored values)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    if path.suffix.lower() == ".exr":
+        return read_exr(path, channels=None)
+    try:
+        return decode_image(path.read_bytes(), str(path))
+    except ImageReadError:
+        raise
+    except Exception as exc:  # cv2 raises plain errors on some malformed files
+        raise ImageReadError(f"{path}: not a readable image ({exc})") from exc
+
+
+def load_linear_rgba(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read any supported image as linear-light RGB (H, W, 3) float32 and its alpha (or None).
+
+    Grey images are replicated to RGB; 8/16-bit files are sRGB-decoded, EXR is taken as linear.
+    """
+    img = read_image(path)
+    c = img.shape[2]
+    alpha = img[:, :, c - 1].copy() if c in (2, 4) else None
+    colour = img[:, :, :1] if c in (1, 2) else img[:, :, :3]
+    colour = np.repeat(colour, 3, axis=2) if colour.shape[2] == 1 else colour
+    linear = colour if Path(path).suffix.lower() == ".exr" else srgb_to_linear(colour)
+    return np.ascontiguousarray(linear, dtype=np.float32), alpha
+
+
+def encode_png(img: np.ndarray, compression: int = 3) -> bytes:
+    """Encode an image to PNG bytes. Float input is taken as sRGB-encoded [0, 1] and stored as
+    8 bit; uint8 and uint16 are stored as they are. (H, W) or (H, W, C), C in {1, 3, 4}, RGB(A)."""
+    arr = np.asarray(img)
+    if arr.dtype not in (np.uint8, np.uint16):
+        arr = to_uint8(arr)
+    if arr.ndim == 3 and arr.shape[2] in (3, 4):
+        arr = arr[:, :, [2, 1, 0, 3][: arr.shape[2]]] if arr.shape[2] == 4 else arr[:, :, ::-1]
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr), [cv2.IMWRITE_PNG_COMPRESSION, compression])
+    if not ok:
+        raise ValueError(f"PNG encoding failed for an array of shape {arr.shape}")
+    return buf.tobytes()
+
+
+def encode_exr(depth: np.ndarray, channel: str = "Z") -> bytes:
+    """Encode a float32 (H, W) map as a one-channel, ZIP-compressed (lossless) EXR."""
+    arr = np.ascontiguousarray(np.asarray(depth, dtype=np.float32))
+    if arr.ndim != 2:
+        raise ValueError(f"EXR depth must be (H, W), got shape {arr.shape}")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    out = io.BytesIO()
+    OpenEXR.File(header, {channel: arr}).write(out)
+    return out.getvalue()
+
+
+def decode_exr(data: bytes | io.IOBase, name: str = "<bytes>", channels: str | None = "Z") -> np.ndarray:
+    """Decode EXR bytes. With `channels="Z"` return that channel as float32 (H, W); with None,
+    all channels as (H, W, C) float32 in R, G, B, A order where present."""
+    try:
+        f = OpenEXR.File(io.BytesIO(data) if isinstance(data, bytes) else data)
+        chans = f.channels()
+    except Exception as exc:
+        raise ImageReadError(f"{name}: not a readable EXR file ({exc})") from exc
+    if channels is not None:
+        if channels not in chans:
+            raise ImageReadError(f"{name}: EXR has no channel {channels!r} (has {sorted(chans)})")
+        return np.ascontiguousarray(chans[channels].pixels, dtype=np.float32)
+    if len(chans) == 1:
+        px = next(iter(chans.values())).pixels
+        return np.ascontiguousarray(px if px.ndim == 3 else px[:, :, None], dtype=np.float32)
+    order = [k for k in ("R", "G", "B", "A") if k in chans] or sorted(chans)
+    planes = [chans[k].pixels if chans[k].pixels.ndim == 2 else chans[k].pixels[..., 0] for k in order]
+    return np.ascontiguousarray(np.stack(planes, axis=-1), dtype=np.float32)
+
+
+def read_exr(path: str | os.PathLike, channels: str | None = "Z") -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    return decode_exr(path.read_bytes(), str(path), channels)
+
+
+def read_depth(path: str | os.PathLike) -> np.ndarray:
+    """Read a disparity map (EXR: its 'Z' or only channel; else an 8/16-bit grey image scaled
+    to [0, 1]) as float32 (H, W)."""
+    path = Path(path)
+    if path.suffix.lower() == ".exr":
+        img = read_exr(path, channels=None)
+    else:
+        img = read_image(path)
+    return np.ascontiguousarray(img[:, :, 0], dtype=np.float32)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Write bytes to `path` through a temporary name and a rename: never a half file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def write_png(path: str | os.PathLike, img: np.ndarray) -> None:
+    atomic_write_bytes(path, encode_png(img))
+
+
+def write_exr(path: str | os.PathLike, depth: np.ndarray) -> None:
+    atomic_write_bytes(path, encode_exr(depth))

@@ -1,0 +1,78 @@
+"""The layered scene as the renderer sees it: planes listed back to front.
+
+Each plane holds linear-light colour `rgb` (H, W, 3) float32 (straight, not premultiplied),
+coverage `alpha` (H, W) in [0, 1] and normalized `disparity` in [0, 1] (1 = nearest): either
+a float (a plane of constant disparity) or an (H, W) map.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Plane:
+    rgb: np.ndarray
+    alpha: np.ndarray
+    disparity: np.ndarray | float
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.rgb.shape[:2]
+
+    def constant_disparity(self) -> float | None:
+        """The plane's disparity if it is the same everywhere, else None."""
+        d = self.disparity
+        if np.isscalar(d) or np.ndim(d) == 0:
+            return float(d)
+        lo, hi = float(np.min(d)), float(np.max(d))
+        return lo if lo == hi else None
+
+    def disparity_map(self) -> np.ndarray:
+        d = self.disparity
+        if np.ndim(d) == 0:
+            return np.full(self.shape, float(d), dtype=np.float32)
+        return np.asarray(d, dtype=np.float32)
+
+    def premultiplied(self) -> np.ndarray:
+        """(H, W, 4) float32: colour times alpha, and alpha."""
+        a = self.alpha[:, :, None]
+        return np.concatenate([self.rgb * a, a], axis=2).astype(np.float32)
+
+
+def _check_finite(name: str, arr: np.ndarray) -> None:
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf")
+
+
+def validate_planes(planes, focus: float, max_coc: float) -> None:
+    """Refuse bad renderer input with a message that names the argument."""
+    planes = list(planes)
+    if not planes:
+        raise ValueError("planes: need at least one plane")
+    if not np.isfinite(focus) or not 0.0 <= focus <= 1.0:
+        raise ValueError(f"focus must be a disparity in [0, 1], got {focus}")
+    if not np.isfinite(max_coc) or max_coc < 0:
+        raise ValueError(f"max_coc must be a finite radius in pixels >= 0, got {max_coc}")
+    shape = None
+    for i, p in enumerate(planes):
+        rgb, alpha = np.asarray(p.rgb), np.asarray(p.alpha)
+        if rgb.ndim != 3 or rgb.shape[2] != 3:
+            raise ValueError(f"planes[{i}].rgb must be (H, W, 3), got shape {rgb.shape}")
+        shape = shape or rgb.shape[:2]
+        if rgb.shape[:2] != shape:
+            raise ValueError(f"planes[{i}].rgb has shape {rgb.shape[:2]}, planes[0] has {shape}")
+        if alpha.shape != shape:
+            raise ValueError(f"planes[{i}].alpha must be {shape}, got shape {alpha.shape}")
+        d = np.asarray(p.disparity)
+        if d.ndim != 0 and d.shape != shape:
+            raise ValueError(f"planes[{i}].disparity must be a float or {shape}, got shape {d.shape}")
+        for name, arr in (("rgb", rgb), ("alpha", alpha), ("disparity", d)):
+            _check_finite(f"planes[{i}].{name}", arr)
+        if alpha.min() < 0 or alpha.max() > 1:
+            raise ValueError(f"planes[{i}].alpha must lie in [0, 1], got [{alpha.min()}, {alpha.max()}]")
+        if d.min() < 0 or d.max() > 1:
+            raise ValueError(f"planes[{i}].disparity must lie in [0, 1], got [{d.min()}, {d.max()}]")
+        if rgb.min() < 0:
+            raise ValueError(f"planes[{i}].rgb must be linear light >= 0, got min {rgb.min()}")
