@@ -5,3 +5,5 @@ linear light, float32. Depth is normalized disparity in [0, 1] (1 = nearest, 0 =
 The signed circle-of-confusion radius in pixels is `c = max_coc * (disparity - focus)`.
 """
 __version__ = "0.1.0"
+from dofsynth.aperture import Disk, Polygon  # noqa: E402
+from dofsynth.render import render_planes  # noqa: E402

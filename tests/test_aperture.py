@@ -1,0 +1,111 @@
+"""Aperture kernels: area, symmetry, continuity in the radius, identity below half a pixel."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from dofsynth.aperture import Disk, Polygon, coverage, from_dict, kernel, parse_aperture, support_radius
+
+
+def brute_coverage(aperture, radius, sub=64):
+    """Independent reference: point-in-shape tests on sub x sub points per pixel."""
+    s = support_radius(radius)
+    n = 2 * s + 1
+    t = (np.arange(n * sub) + 0.5) / sub - s - 0.5
+    yy, xx = np.meshgrid(t, t, indexing="ij")
+    inside = aperture.contains(xx / radius, yy / radius).astype(np.float64)
+    return inside.reshape(n, sub, n, sub).sum(axis=(1, 3)) / sub**2
+
+
+def embed(k, n):
+    out = np.zeros((n, n))
+    s = (n - k.shape[0]) // 2
+    out[s : s + k.shape[0], s : s + k.shape[1]] = k
+    return out
+
+
+@pytest.mark.parametrize("r", [0.7, 1.5, 2.3, 5.0, 9.6])
+def test_disk_area_and_brute_force(r):
+    cov = coverage(Disk(), r)
+    assert cov.sum() == pytest.approx(math.pi * r * r, rel=5e-4)
+    assert np.abs(cov - brute_coverage(Disk(), r)).max() < 8e-3  # 64x64 point sampling error
+
+
+@pytest.mark.parametrize("blades,rotation", [(3, 0.0), (5, 17.0), (6, 0.0), (8, 11.0)])
+def test_polygon_area_and_brute_force(blades, rotation):
+    ap, r = Polygon(blades, rotation), 6.3
+    cov = coverage(ap, r)
+    assert cov.sum() == pytest.approx(0.5 * blades * r * r * math.sin(2 * math.pi / blades), rel=2e-4)
+    assert cov.sum() == pytest.approx(ap.area(r), rel=2e-4)
+    assert np.abs(cov - brute_coverage(ap, r)).max() < 8e-3
+
+
+def test_polygon_symmetry():
+    r = 7.2
+    # N-fold: turning the polygon by 360/N degrees gives the same shape.
+    for n in (5, 6, 7):
+        a, b = Polygon(n, 10.0).kernel(r), Polygon(n, 10.0 + 360.0 / n).kernel(r)
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    # Where the grid allows it, the kernel itself has the symmetry.
+    for n, rot in ((4, 45.0), (4, 0.0), (8, 22.5)):
+        k = Polygon(n, rot).kernel(r)
+        np.testing.assert_allclose(np.rot90(k), k, atol=1e-4)  # x midpoint rule
+    k6 = Polygon(6, 0.0).kernel(r)
+    np.testing.assert_allclose(k6[::-1, ::-1], k6, atol=1e-6)
+    # The inertia of a regular polygon is isotropic (any N >= 3).
+    k5 = Polygon(5, 13.0).kernel(12.0).astype(np.float64)
+    s = k5.shape[0] // 2
+    y, x = np.mgrid[-s : s + 1, -s : s + 1]
+    assert (k5 * x * x).sum() == pytest.approx((k5 * y * y).sum(), rel=5e-3)
+    assert abs((k5 * x * y).sum()) < 5e-3 * (k5 * x * x).sum()
+    # A triangle is not centrally symmetric, so the sign of the radius matters.
+    k3 = Polygon(3).kernel(5.0)
+    assert np.abs(k3 - k3[::-1, ::-1]).max() > 0.01
+
+
+@pytest.mark.parametrize("ap", [Disk(), Polygon(3), Polygon(5, 30.0)])
+def test_negative_radius_is_point_reflection(ap):
+    for r in (0.8, 3.3, 6.0):
+        np.testing.assert_array_equal(ap.kernel(-r), ap.kernel(r)[::-1, ::-1])
+
+
+@pytest.mark.parametrize("ap", [Disk(), Polygon(6, 5.0)])
+def test_normalized_and_identity_below_half_pixel(ap):
+    for r in (0.0, 0.2, -0.3, 0.4999):
+        np.testing.assert_array_equal(ap.kernel(r), np.ones((1, 1), np.float32))
+    for r in (0.6, 2.0, 3.0, 10.4):
+        k = ap.kernel(r)
+        assert k.dtype == np.float32 and k.sum() == pytest.approx(1.0, abs=1e-5)
+
+
+@pytest.mark.parametrize("ap", [Disk(), Polygon(5, 12.0)])
+def test_kernel_continuous_in_radius(ap):
+    """No jump at integer or half-integer radii: tiny radius steps make tiny kernel changes."""
+    for lo, hi in ((0.45, 0.55), (1.45, 1.55), (2.9, 3.1), (3.45, 3.55)):
+        rs = np.linspace(lo, hi, 101)
+        n = 2 * support_radius(hi) + 1
+        ks = [embed(ap.kernel(float(r)), n) for r in rs]
+        steps = [np.abs(b - a).max() for a, b in zip(ks, ks[1:])]
+        # Each step is 1/1000 of a pixel; the largest kernel change must be of that order.
+        assert max(steps) < 5e-3, (lo, hi, max(steps))
+
+
+def test_dict_round_trip_and_parsing():
+    for ap in (Disk(), Polygon(6), Polygon(7, 12.5)):
+        d = json.loads(json.dumps(ap.to_dict()))
+        assert from_dict(d) == ap and type(ap).from_dict(d) == ap
+    assert Disk().to_dict() == {"kind": "disk"}
+    assert Polygon(6).to_dict() == {"kind": "polygon", "blades": 6, "rotation": 0.0}
+    assert parse_aperture("disk") == Disk()
+    assert parse_aperture("polygon:5:30") == Polygon(5, 30.0)
+    for bad in ({"kind": "star"}, "disk", {}):
+        with pytest.raises(ValueError, match="aperture"):
+            from_dict(bad)
+    for bad in ("hexagon", "polygon:2", "polygon:x"):
+        with pytest.raises(ValueError, match="aperture"):
+            parse_aperture(bad)
+    with pytest.raises(ValueError, match="blades"):
+        Polygon(2)
+    with pytest.raises(ValueError, match="signed_radius"):
+        kernel(Disk(), float("nan"))

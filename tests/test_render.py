@@ -1,0 +1,174 @@
+"""The layered renderer: analytic convolution, identity in focus, continuity, varying disparity,
+energy, the exact mode, and input validation."""
+import numpy as np
+import pytest
+
+from dofsynth.aperture import Disk, Polygon, support_radius
+from dofsynth.planes import Plane
+from dofsynth.render import render_planes
+from tests.test_aperture import brute_coverage
+
+
+def rng(seed):
+    return np.random.default_rng(np.random.SeedSequence(seed))
+
+
+def opaque(rgb, disparity):
+    h, w = rgb.shape[:2]
+    return Plane(rgb.astype(np.float32), np.ones((h, w), np.float32), disparity)
+
+
+def black(h, w, disparity=0.0):
+    return opaque(np.zeros((h, w, 3), np.float32), disparity)
+
+
+def blob(h, w, cy, cx, r, g):
+    """A soft-edged disc cutout: random colour, alpha ramping over 2 px."""
+    yy, xx = np.mgrid[:h, :w]
+    a = np.clip((r - np.hypot(yy - cy, xx - cx)) / 2.0, 0, 1).astype(np.float32)
+    return g.random((h, w, 3), dtype=np.float32), a
+
+
+def direct_convolution(img, k, edge):
+    """out[y, x] = sum_{dy, dx} k[dy, dx] * img[y - dy, x - dx]; edge replication or zeros."""
+    s = k.shape[0] // 2
+    h, w = img.shape[:2]
+    pad = np.pad(img.astype(np.float64), ((s, s), (s, s), (0, 0)), mode="edge" if edge else "constant")
+    out = np.zeros((h, w, img.shape[2]))
+    for dy in range(-s, s + 1):
+        for dx in range(-s, s + 1):
+            out += k[dy + s, dx + s] * pad[s - dy : s - dy + h, s - dx : s - dx + w]
+    return out
+
+
+@pytest.mark.parametrize("ap,c", [(Disk(), 3.3), (Disk(), -2.0), (Polygon(5, 10.0), -4.1), (Polygon(5, 10.0), 4.1)])
+def test_constant_plane_is_analytic_convolution(ap, c):
+    g = rng(1)
+    img = g.random((40, 44, 3), dtype=np.float32)
+    cov = brute_coverage(ap, abs(c))
+    k = cov / cov.sum()
+    if c < 0:
+        k = k[::-1, ::-1]
+    focus, max_coc = 0.5, 10.0
+    out = render_planes([opaque(img, focus + c / max_coc)], focus, max_coc, ap)
+    assert out.dtype == np.float32 and out.shape == img.shape
+    ref = direct_convolution(img, k, edge=True)
+    assert np.abs(out - ref).max() < 2e-3
+    # A cutout in front of black: zero outside the frame, premultiplied.
+    rgb, a = blob(40, 44, 20, 30, 12, g)
+    out = render_planes([black(40, 44), Plane(rgb, a, focus + c / max_coc)], focus, max_coc, ap)
+    ref = direct_convolution(rgb * a[:, :, None], k, edge=False)
+    assert np.abs(out - ref).max() < 2e-3
+
+
+def test_in_focus_is_identity_and_mean_preserved():
+    g = rng(2)
+    img = g.random((48, 48, 3), dtype=np.float32)
+    rgb, a = blob(48, 48, 24, 24, 10, g)
+    planes = [opaque(img, 0.2), Plane(rgb, a, 0.7)]
+    out = render_planes(planes, 0.2, 30.0)  # background in focus, cutout blurred
+    far = np.hypot(*np.mgrid[-24:24, -24:24]) > 10 + 2 + 15 + 1
+    np.testing.assert_allclose(out[far], img[far], atol=1e-6)  # FFT round-off of the cutout
+    # Everything within half a pixel of focus is bit-exact.
+    out = render_planes([opaque(img, 0.5), Plane(rgb, a, 0.51)], 0.5, 40.0)
+    np.testing.assert_array_equal(out, img * (1 - a[:, :, None]) + rgb * a[:, :, None])
+    # A normalized kernel keeps the total light of a cutout that stays inside the frame.
+    out = render_planes([black(48, 48), Plane(rgb, a, 0.9)], 0.5, 20.0)  # radius 8
+    np.testing.assert_allclose(out.sum(axis=(0, 1)), (rgb * a[:, :, None]).sum(axis=(0, 1)), rtol=1e-4)
+    # A flat opaque plane stays flat (edge replication: no dark frame border).
+    flat = render_planes([opaque(np.full((32, 32, 3), 0.3), 0.0)], 1.0, 9.0)
+    np.testing.assert_allclose(flat, 0.3, atol=1e-5)
+
+
+@pytest.mark.parametrize("ap", [Disk(), Polygon(6, 15.0)])
+def test_continuous_in_max_coc_and_focus(ap):
+    g = rng(3)
+    img = g.random((32, 32, 3), dtype=np.float32)
+    rgb, a = blob(32, 32, 16, 16, 8, g)
+    ramp = np.tile(np.linspace(0.0, 0.4, 32, dtype=np.float32), (32, 1))
+    planes = [opaque(img, ramp), Plane(rgb, a, 0.8)]
+    # The cutout's radius sweeps 2.9..3.1 and 0.45..0.55 in steps of 0.002 px.
+    for lo, hi in ((2.9, 3.1), (0.45, 0.55)):
+        outs = [render_planes(planes, 0.5, r / 0.3, ap) for r in np.linspace(lo, hi, 101)]
+        steps = [np.abs(b - a).max() for a, b in zip(outs, outs[1:])]
+        assert max(steps) < 0.01, (lo, hi, max(steps))
+    outs = [render_planes(planes, f, 10.0, ap) for f in np.linspace(0.49, 0.51, 21)]
+    assert max(np.abs(b - a).max() for a, b in zip(outs, outs[1:])) < 0.01
+
+
+def test_nearly_constant_map_equals_constant_plane():
+    g = rng(4)
+    img = g.random((40, 40, 3), dtype=np.float32)
+    const = render_planes([opaque(img, 0.25)], 0.6, 20.0)
+    same = render_planes([opaque(img, np.full((40, 40), 0.25, np.float32))], 0.6, 20.0)
+    np.testing.assert_array_equal(same, const)
+    tilt = np.full((40, 40), 0.25, np.float32)
+    tilt[:, 20:] = np.nextafter(np.float32(0.25), np.float32(1))  # two levels, 1e-7 px apart
+    np.testing.assert_allclose(render_planes([opaque(img, tilt)], 0.6, 20.0), const, atol=2e-5)
+    from dofsynth.render import level_weights
+
+    levels, k0, f = level_weights(np.full((4, 4), -7.0, np.float32), 0.5)
+    assert levels.tolist() == [-7.0] and not k0.any() and not f.any()
+
+
+def test_blur_grows_along_a_ramp():
+    """Horizontal stripes on a left-to-right ramp: sharp at the left end, blurred at the right."""
+    h, w = 48, 128
+    stripes = ((np.arange(h) // 6) % 2).astype(np.float32)
+    img = np.repeat(np.tile(stripes[:, None], (1, w))[:, :, None], 3, axis=2)
+    ramp = np.tile(np.linspace(0.5, 1.0, w, dtype=np.float32), (h, 1))  # CoC 0 .. 6 px
+    out = render_planes([opaque(img, ramp)], 0.5, 12.0)[:, :, 0]
+    contrast = out[12:36].max(axis=0) - out[12:36].min(axis=0)
+    assert contrast[:4].min() > 0.99  # in focus
+    assert contrast[-8:].max() < 0.3  # disc of radius ~6 over stripes of period 12
+    assert np.all(np.diff(contrast[10:-10]) < 0.02)  # decreasing (to rounding)
+
+
+def test_constant_region_inside_varying_map():
+    g = rng(5)
+    h, w = 64, 96
+    img = g.random((h, w, 3), dtype=np.float32)
+    x = np.arange(w, dtype=np.float32)
+    d = np.tile(np.clip(0.1 + (x - 60) * 0.01, 0.1, 0.5), (h, 1)).astype(np.float32)  # flat 0.1 left of x=60
+    c = 0.8
+    out = render_planes([opaque(img, d)], c, 25.0)  # flat part: CoC -17.5 px
+    ref = render_planes([opaque(img, 0.1)], c, 25.0)
+    s = support_radius(17.5)
+    err = np.abs(out[:, : 60 - s] - ref[:, : 60 - s]).max()
+    # Only the kernel interpolation between levels (at most 0.5 px apart) differs.
+    assert err < 0.01, err
+
+
+def test_scatter_conserves_energy():
+    g = rng(6)
+    h, w = 72, 72
+    rgb, a = blob(h, w, 36, 36, 16, g)
+    yy = np.mgrid[:h, :w][0]
+    d = (0.55 + 0.4 * yy / h).astype(np.float32)  # CoC 0.5 .. 8.5 px across the cutout
+    out = render_planes([black(h, w), Plane(rgb, a, d)], 0.5, 20.0)
+    src = (rgb * a[:, :, None]).sum(axis=(0, 1))
+    np.testing.assert_allclose(out.sum(axis=(0, 1)), src, rtol=0.01)
+
+
+def test_bad_input_names_the_argument():
+    img = np.zeros((8, 8, 3), np.float32)
+    ok = opaque(img, 0.5)
+    cases = [
+        ([ok, Plane(img[:4], np.ones((4, 8), np.float32), 0.5)], {}, "planes\\[1\\]"),
+        ([Plane(img, np.ones((8, 7), np.float32), 0.5)], {}, "alpha"),
+        ([opaque(np.full((8, 8, 3), np.nan), 0.5)], {}, "rgb"),
+        ([opaque(img, 1.5)], {}, "disparity"),
+        ([opaque(img, np.full((8, 8), -0.1))], {}, "disparity"),
+        ([ok], {"max_coc": -1.0}, "max_coc"),
+        ([ok], {"focus": 2.0}, "focus"),
+        ([ok], {"method": "fast"}, "method"),
+        ([ok], {"aperture": "disk"}, "aperture"),
+        ([ok], {"level_step": 0.0}, "level_step"),
+        ([ok], {"samples": 0, "method": "exact"}, "samples"),
+        ([], {}, "planes"),
+    ]
+    for planes, kw, name in cases:
+        args = {"focus": 0.5, "max_coc": 4.0} | kw
+        focus, max_coc = args.pop("focus"), args.pop("max_coc")
+        with pytest.raises(ValueError, match=name):
+            render_planes(planes, focus, max_coc, **args)
