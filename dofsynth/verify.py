@@ -163,8 +163,8 @@ def expected_background(bg: dict, shape: tuple[int, int]) -> np.ndarray:
         return np.asarray(background_disparity(bg, shape), dtype=np.float32)
     h, w = shape
     b0, b1 = float(bg["b0"]), float(bg["b1"])
-    if bg["mode"] == "flat":
-        return np.full(shape, b0, dtype=np.float32)
+    if bg["mode"] == "flat":   # config.BackgroundRules: a flat background is at infinity
+        return np.zeros(shape, dtype=np.float32)
     if bg["direction"] == "horizontal":   # b0 at the left edge, b1 at the right edge
         t = np.linspace(0.0, 1.0, w, dtype=np.float64)[None, :]
     else:                                 # b0 at the bottom edge, b1 at the top edge
@@ -225,17 +225,17 @@ def _sha256(path: Path) -> str:
 
 def _check_shard_file(out_dir: Path, sh: ds.ShardInfo, report: Report) -> bool:
     """Size and hash; False if the file is missing (nothing more to read)."""
-    path = out_dir / sh.name
+    path = out_dir / sh.path
     if not path.is_file():
-        report.add(sh.name, "missing shard (listed in the manifest)")
+        report.add(sh.path, "missing shard (listed in the manifest)")
         return False
     size = path.stat().st_size
     if sh.bytes is not None and size != int(sh.bytes):
-        report.add(sh.name, f"size {size} bytes, the manifest says {sh.bytes} (truncated or rewritten?)")
+        report.add(sh.path, f"size {size} bytes, the manifest says {sh.bytes} (truncated or rewritten?)")
     if sh.sha256 is None:
-        report.add(sh.name, "the manifest records no sha256")
+        report.add(sh.path, "the manifest records no sha256")
     elif _sha256(path) != sh.sha256:
-        report.add(sh.name, "sha256 differs from the manifest (corrupted or rewritten)")
+        report.add(sh.path, "sha256 differs from the manifest (corrupted or rewritten)")
     return True
 
 
@@ -256,14 +256,14 @@ def verify_dataset(out_dir: str | Path, deep: bool = False, deep_n: int = 8, see
         raise FileNotFoundError(f"{out_dir}: no such data set folder")
     report = Report(out_dir)
     try:
-        manifest = ds.load_manifest(out_dir)
+        manifest = ds.load(out_dir)
         splits = ds.manifest_splits(manifest)
         shards = {s: ds.manifest_shards(manifest, s) for s in splits}
-    except (ds.DatasetError, FileNotFoundError, KeyError, TypeError, ValueError) as exc:
+    except (FileNotFoundError, KeyError, TypeError, ValueError) as exc:
         report.add(ds.MANIFEST, f"unreadable manifest: {exc}")
         return report
 
-    listed = {sh.name for s in splits for sh in shards[s]}
+    listed = {sh.path for s in splits for sh in shards[s]}
     _unlisted_shards(out_dir, listed, report)
     assets: dict[str, dict[tuple[str, str], str]] = {}   # split -> (kind, value) -> first place
     raw_by_key: dict[str, tuple[str, dict]] = {}         # for --deep
@@ -274,28 +274,28 @@ def verify_dataset(out_dir: str | Path, deep: bool = False, deep_n: int = 8, see
         for sh in shards[split]:
             report.shards += 1
             if sh.first_index != expect_next:
-                report.add(sh.name, f"first index {sh.first_index}, expected {expect_next} (gap or overlap)")
+                report.add(sh.path, f"first index {sh.first_index}, expected {expect_next} (gap or overlap)")
             expect_next = sh.first_index + sh.samples
             if not _check_shard_file(out_dir, sh, report):
                 continue
-            expected_keys = [f"{split}-{i:07d}" for i in range(sh.first_index, sh.first_index + sh.samples)]
+            expected_keys = sh.keys()
             seen, broken = [], False
             try:
-                for key, members in ds.iter_shard(out_dir / sh.name):
+                for key, members in ds.iter_shard(out_dir / sh.path):
                     seen.append(key)
-                    where = f"{sh.name}: {key}"
+                    where = f"{sh.path}: {key}"
                     _check_sample(key, members, split, where, report, assets[split])
                     if deep:
-                        raw_by_key[key] = (sh.name, members)
+                        raw_by_key[key] = (sh.path, members)
                     if progress:
                         progress(1)
-            except ds.DatasetError as exc:
+            except ds.READ_ERRORS as exc:
                 broken = True
-                report.add(sh.name, f"truncated or unreadable after {len(seen)} samples: {exc}")
+                report.add(sh.path, f"truncated or unreadable after {len(seen)} samples: {exc}")
             report.samples += len(seen)
             report.splits[split] += len(seen)
             if seen != expected_keys and not broken:
-                report.add(sh.name, f"holds {len(seen)} samples {_span(seen)}, the manifest says "
+                report.add(sh.path, f"holds {len(seen)} samples {_span(seen)}, the manifest says "
                                     f"{sh.samples} {_span(expected_keys)}")
     _check_totals(manifest, shards, report)
     _check_leaks(assets, report)
@@ -323,7 +323,7 @@ def _check_totals(manifest: dict, shards: dict[str, list], report: Report) -> No
 
 def _check_sample(key, members, split, where, report, assets) -> None:
     try:
-        sample = ds.decode_members(members, key)
+        sample = ds.decode_sample(members, key)
     except Exception as exc:  # any decoder failure is a data problem
         report.add(where, f"cannot decode: {exc}")
         return

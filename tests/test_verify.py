@@ -95,9 +95,11 @@ def write_fixture_dataset(out: Path, n_train=6, n_test=2, shard_size=2) -> Path:
                     sample.update(_members(_record(split, i, rng, pick), rng))
                     tw.write(sample)
             data = (out / name).read_bytes()
-            shards.append({"name": name, "first_index": first, "samples": min(n, first + shard_size) - first,
+            shards.append({"name": name.split("/")[1], "path": name, "index": first // shard_size,
+                           "first_index": first, "samples": min(n, first + shard_size) - first,
                            "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)})
-        splits[split] = {"samples": n, "shards": shards}
+        splits[split] = {"samples": n, "planned_samples": n, "bytes": sum(x["bytes"] for x in shards),
+                         "shards": shards}
     text = "# fixture\n"
     manifest = {"schema_version": 1, "dofsynth_version": "0.1.0",
                 "recipe": {"text": text, "sha256": hashlib.sha256(text.encode()).hexdigest(),
@@ -116,7 +118,7 @@ def rewrite_record(out: Path, split: str, key: str, edit) -> str:
     index = int(key.rsplit("-", 1)[1])
     sh = next(s for s in ds.manifest_shards(manifest, split)
               if s.first_index <= index < s.first_index + s.samples)
-    path = out / sh.name
+    path = out / sh.path
     with tarfile.open(path) as tar:
         members = [(info, tar.extractfile(info).read() if info.isfile() else None) for info in tar]
     buf = io.BytesIO()
@@ -129,8 +131,8 @@ def rewrite_record(out: Path, split: str, key: str, edit) -> str:
                 info.size = len(data)
             tar.addfile(info, io.BytesIO(data) if data is not None else None)
     path.write_bytes(buf.getvalue())
-    _fix_manifest(out, manifest, sh.name, path.read_bytes())
-    return sh.name
+    _fix_manifest(out, manifest, sh.path, path.read_bytes())
+    return sh.path
 
 
 def _fix_manifest(out, manifest, name, data):
@@ -168,7 +170,7 @@ def copy(fresh, tmp_path) -> Path:
 
 
 def _shard(out: Path, split: str, i: int = 0) -> str:
-    return ds.manifest_shards(ds.load_manifest(out), split)[i].name
+    return ds.manifest_shards(ds.load(out), split)[i].path
 
 
 def _run(out: Path, capsys, *extra) -> tuple[int, str]:
@@ -180,7 +182,7 @@ def _run(out: Path, capsys, *extra) -> tuple[int, str]:
 def test_fresh_dataset_passes(fresh, capsys):
     report = verify_dataset(fresh)
     assert report.ok, report.lines()
-    m = ds.load_manifest(fresh)
+    m = ds.load(fresh)
     n = {s: sum(sh.samples for sh in ds.manifest_shards(m, s)) for s in ds.manifest_splits(m)}
     assert report.splits == n and report.samples == sum(n.values()) > 0
     rc, out = _run(fresh, capsys)
