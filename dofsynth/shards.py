@@ -1,0 +1,278 @@
+"""Deterministic WebDataset tar shards (docs/FORMAT.md), written complete or not at all.
+
+A shard is a plain (uncompressed, POSIX ustar) tar of samples; sample `KEY` with members
+`{"aif.png": b"...", ...}` becomes the tar members `KEY.aif.png`, ... . Every tar header is
+fixed (mtime 0, uid/gid 0, uname/gname "", mode 0o444, regular file) and the members of a
+sample are written in a fixed order (`member_sort_key`), so the same samples give the same
+bytes on any machine, any day.
+
+We write with `tarfile` directly rather than `webdataset.TarWriter`: the latter can be made
+just as deterministic (mtime=0, user="", group="") but importing `webdataset` imports torch
+(about 2 s and 300 MB per spawned worker), and torch stays out of the generation path. The
+tests read our shards back with `webdataset.WebDataset`.
+
+A shard is written to `OUT/<split>/.<name>.tmp-<pid>` and renamed (`os.replace`, atomic on
+one file system) to `OUT/<split>/<name>` only when complete and fsync'ed: a file under a final
+name is always a whole shard.
+"""
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import re
+import tarfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Iterable, Iterator
+
+TAR_MODE = 0o444
+TEMP_MARK = ".tmp-"  # temp files are ".<final name>.tmp-<pid>"
+_KEY_RE = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+class ShardError(ValueError):
+    """A shard that is unreadable or not what it should be; the message names the file."""
+
+
+@dataclass(frozen=True)
+class ShardInfo:
+    """One finished shard: where it is, which samples it holds, and its checksum."""
+
+    split: str
+    index: int          # shard number within the split
+    name: str           # file name, e.g. "train-000003.tar"
+    first_index: int    # sample index of its first sample
+    samples: int        # number of samples (consecutive indices)
+    sha256: str
+    bytes: int
+
+    @property
+    def path(self) -> str:
+        """Path relative to the data set folder, e.g. "train/train-000003.tar"."""
+        return f"{self.split}/{self.name}"
+
+    def keys(self) -> list[str]:
+        return [sample_key(self.split, i) for i in range(self.first_index, self.first_index + self.samples)]
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["path"] = self.path
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ShardInfo":
+        return cls(split=str(d["split"]), index=int(d["index"]), name=str(d["name"]),
+                   first_index=int(d["first_index"]), samples=int(d["samples"]),
+                   sha256=str(d["sha256"]), bytes=int(d["bytes"]))
+
+
+def sample_key(split: str, index: int) -> str:
+    """The sample key of FORMAT.md: "<split>-<index:07d>"."""
+    return f"{split}-{index:07d}"
+
+
+def shard_name(split: str, shard_index: int) -> str:
+    """"<split>-<shard_index:06d>.tar"."""
+    return f"{split}-{shard_index:06d}.tar"
+
+
+def temp_path(final: Path) -> Path:
+    """The temporary name a shard (or any file) is written under before its rename."""
+    return final.with_name(f".{final.name}{TEMP_MARK}{os.getpid()}")
+
+
+def is_temp_name(name: str) -> bool:
+    return name.startswith(".") and (TEMP_MARK in name or ".tmp" in name)
+
+
+def member_sort_key(suffix: str) -> tuple:
+    """Natural order of member suffixes: dot-separated parts, numeric parts compared as numbers
+    ("aif.png" < "cover.png" < "depth.exr" < "dof.2.png" < "dof.10.png" < "json")."""
+    return tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in suffix.split("."))
+
+
+def _tarinfo(name: str, size: int) -> tarfile.TarInfo:
+    ti = tarfile.TarInfo(name)
+    ti.size = size
+    ti.mtime = 0
+    ti.mode = TAR_MODE
+    ti.uid = ti.gid = 0
+    ti.uname = ti.gname = ""
+    ti.type = tarfile.REGTYPE
+    return ti
+
+
+class _HashingFile(io.RawIOBase):
+    """A write-only file object that forwards to `fh` and hashes/counts what passes."""
+
+    def __init__(self, fh):
+        self.fh = fh
+        self.sha = hashlib.sha256()
+        self.nbytes = 0
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b) -> int:
+        self.sha.update(b)
+        self.nbytes += len(b)
+        return self.fh.write(b)
+
+
+class ShardWriter:
+    """Write samples into one tar shard under a temporary name; `close()` renames it.
+
+        with ShardWriter(path) as w:
+            w.write("train-0000000", {"aif.png": b"...", "json": b"..."})
+        w.samples, w.sha256, w.bytes
+
+    Leaving the block by an exception deletes the temporary file and leaves `path` untouched.
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = temp_path(self.path)
+        self._fh = open(self.tmp, "wb")
+        self._hf = _HashingFile(self._fh)
+        self._tar = tarfile.open(fileobj=self._hf, mode="w|", format=tarfile.USTAR_FORMAT)
+        self.samples = 0
+        self.sha256: str | None = None
+        self.bytes: int | None = None
+        self._keys: set[str] = set()
+
+    def write(self, key: str, members: dict[str, bytes]) -> None:
+        if not _KEY_RE.match(key):
+            raise ValueError(f"sample key {key!r}: keys hold letters, digits, '-' and '_' only (no dots)")
+        if key in self._keys:
+            raise ValueError(f"sample key {key!r} written twice into {self.path}")
+        if not members:
+            raise ValueError(f"sample {key!r} has no members")
+        self._keys.add(key)
+        for suffix in sorted(members, key=member_sort_key):
+            data = members[suffix]
+            if not isinstance(data, (bytes, bytearray, memoryview)):
+                raise ValueError(f"{key}.{suffix}: member must be bytes, got {type(data).__name__}")
+            if not suffix or suffix.startswith(".") or "/" in suffix:
+                raise ValueError(f"{key}.{suffix}: bad member suffix {suffix!r}")
+            data = bytes(data)
+            self._tar.addfile(_tarinfo(f"{key}.{suffix}", len(data)), io.BytesIO(data))
+        self.samples += 1
+
+    def close(self) -> tuple[int, str, int]:
+        """Finish the tar, fsync, rename to the final name; returns (samples, sha256, bytes)."""
+        if self.sha256 is not None:
+            return self.samples, self.sha256, self.bytes
+        self._tar.close()
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+        self._fh.close()
+        os.replace(self.tmp, self.path)
+        self.sha256, self.bytes = self._hf.sha.hexdigest(), self._hf.nbytes
+        return self.samples, self.sha256, self.bytes
+
+    def abort(self) -> None:
+        """Drop the half-written temp file."""
+        try:
+            self._tar.close()  # so its stream does not write again at garbage collection
+        except Exception:
+            pass
+        try:
+            self._fh.close()
+        finally:
+            self.tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> "ShardWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_shard(path: str | os.PathLike, samples: Iterable[tuple[str, dict[str, bytes]]]) -> tuple[int, str, int]:
+    """Write (key, members) pairs, in the order given, as one shard at `path`.
+    Returns (sample count, sha256 hex, bytes)."""
+    with ShardWriter(path) as w:
+        for key, members in samples:
+            w.write(key, members)
+    return w.samples, w.sha256, w.bytes
+
+
+def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> tuple[str, int]:
+    """(sha256 hex, size in bytes) of a file."""
+    h, n = hashlib.sha256(), 0
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+            n += len(block)
+    return h.hexdigest(), n
+
+
+def _check_end(path: Path, offset: int) -> None:
+    """A whole tar ends with two zero blocks after its last member; `tarfile` accepts a file cut
+    at a member boundary as a shorter archive, so check for them."""
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        end = fh.read(2 * tarfile.BLOCKSIZE)
+    if len(end) < 2 * tarfile.BLOCKSIZE or end.count(0) != len(end):
+        raise ShardError(f"{path}: truncated tar (no end-of-archive marker after the last member)")
+
+
+def read_shard(path: str | os.PathLike) -> Iterator[tuple[str, dict[str, bytes]]]:
+    """Yield (key, {suffix: bytes}) per sample in file order; `ShardError` names a bad file."""
+    path = Path(path)
+    current, members = None, {}
+    try:
+        with tarfile.open(path, "r:") as tar:
+            for info in tar:
+                if not info.isfile():
+                    continue
+                key, _, suffix = info.name.rsplit("/", 1)[-1].partition(".")
+                if current is not None and key != current:
+                    yield current, members
+                    members = {}
+                current = key
+                data = tar.extractfile(info).read()
+                if len(data) != info.size:
+                    raise ShardError(f"{path}: member {info.name} is truncated")
+                members[suffix] = data
+            end = tar.offset
+    except (tarfile.TarError, EOFError, OSError) as exc:
+        raise ShardError(f"{path}: unreadable tar ({exc})") from exc
+    _check_end(path, end)
+    if current is not None:
+        yield current, members
+
+
+def shard_keys(path: str | os.PathLike) -> list[str]:
+    """Sample keys of a shard in file order (reads headers only, not the member data)."""
+    path = Path(path)
+    keys: list[str] = []
+    try:
+        with tarfile.open(path, "r:") as tar:
+            for info in tar:
+                key = info.name.rsplit("/", 1)[-1].partition(".")[0]
+                if not keys or keys[-1] != key:
+                    keys.append(key)
+            end = tar.offset
+    except (tarfile.TarError, EOFError, OSError) as exc:
+        raise ShardError(f"{path}: unreadable tar ({exc})") from exc
+    _check_end(path, end)
+    return keys
+
+
+def remove_temp_files(folder: str | os.PathLike) -> list[Path]:
+    """Delete leftover temporary files (".<name>.tmp-<pid>", ".<name>.tmp<pid>") directly in
+    `folder`; returns what was removed. Call only while holding the folder's lock."""
+    folder = Path(folder)
+    removed = []
+    if folder.is_dir():
+        for p in sorted(folder.iterdir()):
+            if p.is_file() and is_temp_name(p.name):
+                p.unlink(missing_ok=True)
+                removed.append(p)
+    return removed
