@@ -1,0 +1,151 @@
+"""`dofsynth render IMAGE --depth DEPTH --focus F --max-coc R --out OUT`: shallow depth of field
+for one photo and its depth map (the photo is one opaque plane of varying disparity)."""
+from __future__ import annotations
+
+import argparse
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+DESCRIPTION = """\
+Render synthetic shallow depth of field for a single photo and its disparity map, in linear
+light. The photo is treated as ONE opaque plane whose disparity varies per pixel: each pixel is
+spread over a disc (or polygon) of radius |max_coc * (disparity - focus)| pixels, normalized.
+There is no hidden background behind foreground objects, so at depth edges a blurred background
+bleeds over a sharp foreground edge and a blurred foreground has nothing behind it to reveal
+(see docs/rendering.md for the known limits; layered scenes avoid them).
+
+DEPTH is normalized disparity (1 = nearest, 0 = infinity): a float32 EXR (channel Z or its only
+channel) or an 8/16-bit grey PNG/TIFF scaled to [0, 1]. It must have the photo's size.
+OUT is an sRGB 8-bit PNG, or a linear float32 RGB EXR when it ends in .exr; written atomically.
+"""
+
+EPILOG = """\
+examples:
+  dofsynth render photo.jpg --depth photo_depth.png --focus-at 320,240 --max-coc 12 --out dof.png
+  dofsynth render photo.png --depth d.exr --focus 0.8 --max-coc 20 --aperture polygon:6:15 --highlight --out dof.exr
+  dofsynth render photo.png --depth d.png --focus 0.8 --model runs/r1 --aperture-scale 1.0 --out net.png
+"""
+
+
+def _focus_at(text: str) -> tuple[int, int]:
+    try:
+        x, y = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y pixel coordinates, got {text!r}") from None
+    return x, y
+
+
+def _nonneg(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return v
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "render", help="shallow depth of field for one photo and its depth map",
+        description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("image", metavar="IMAGE", help="the photo (PNG, JPEG, TIFF, WebP: sRGB; EXR: linear)")
+    p.add_argument("--depth", required=True, metavar="DEPTH", help="disparity map in [0, 1], 1 = nearest (EXR or grey PNG)")
+    focus = p.add_mutually_exclusive_group(required=True)
+    focus.add_argument("--focus", type=_nonneg, metavar="F", help="in-focus disparity in [0, 1]")
+    focus.add_argument("--focus-at", type=_focus_at, metavar="X,Y",
+                       help="focus on the disparity at pixel column X, row Y (median of a 5x5 window)")
+    p.add_argument("--max-coc", type=_nonneg, metavar="R",
+                   help="CoC radius in pixels at |disparity - focus| = 1 (required unless --model)")
+    p.add_argument("--out", required=True, metavar="OUT", help="output image: .png (sRGB 8-bit) or .exr (linear)")
+    p.add_argument("--aperture", default="disk", metavar="SHAPE",
+                   help="disk (default), polygon:N or polygon:N:ROTATION_DEGREES (circumradius = CoC)")
+    p.add_argument("--highlight", action="store_true",
+                   help="boost near-white pixels to brighter-than-white before blurring (bokeh discs)")
+    p.add_argument("--method", choices=("layered", "exact"), default="layered",
+                   help="layered (fast, default) or exact (aperture sampling; slow, for small images)")
+    p.add_argument("--model", metavar="RUN", default=None,
+                   help="render with a trained network from training run folder RUN instead")
+    p.add_argument("--aperture-scale", type=_nonneg, default=1.0, metavar="S",
+                   help="with --model: the network's aperture (blur strength) control (default 1.0)")
+    p.set_defaults(func=run)
+
+
+def focus_at(disparity: np.ndarray, x: int, y: int, window: int = 5) -> float:
+    """Median disparity of the window x window pixels around column x, row y (clipped to the map)."""
+    h, w = disparity.shape
+    if not (0 <= x < w and 0 <= y < h):
+        raise ValueError(f"--focus-at {x},{y} lies outside the {w}x{h} image")
+    r = window // 2
+    return float(np.median(disparity[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1]))
+
+
+def _read_inputs(args):
+    from dofsynth.io import load_linear_rgba, read_depth
+
+    for name, path in (("IMAGE", args.image), ("--depth", args.depth)):
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"{name} {path}: no such file")
+    rgb, _ = load_linear_rgba(args.image)
+    disparity = read_depth(args.depth)
+    if disparity.shape != rgb.shape[:2]:
+        raise ValueError(f"--depth {args.depth} is {disparity.shape[1]}x{disparity.shape[0]} but IMAGE "
+                         f"{args.image} is {rgb.shape[1]}x{rgb.shape[0]}: they must have the same size")
+    if not np.all(np.isfinite(disparity)) or disparity.min() < 0 or disparity.max() > 1:
+        raise ValueError(f"--depth {args.depth}: disparity must be finite and in [0, 1], "
+                         f"got [{np.nanmin(disparity)}, {np.nanmax(disparity)}]")
+    if not np.all(np.isfinite(rgb)) or rgb.min() < 0:
+        raise ValueError(f"IMAGE {args.image}: colour must be finite and >= 0")
+    return rgb, disparity
+
+
+def _write(path: Path, rgb: np.ndarray) -> None:
+    from dofsynth.color import linear_to_srgb
+    from dofsynth.io import atomic_write_bytes, write_png
+
+    if path.suffix.lower() == ".exr":
+        import OpenEXR
+
+        chans = {k: np.ascontiguousarray(rgb[:, :, i], dtype=np.float32) for i, k in enumerate("RGB")}
+        buf = io.BytesIO()
+        OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, chans).write(buf)
+        atomic_write_bytes(path, buf.getvalue())
+    else:
+        write_png(path, linear_to_srgb(rgb))
+
+
+def run(args) -> int:
+    import scipy.fft
+
+    from dofsynth.aperture import parse_aperture
+    from dofsynth.color import highlight_boost
+    from dofsynth.planes import Plane
+    from dofsynth.render import render_planes
+
+    out = Path(args.out)
+    if out.suffix.lower() not in (".png", ".exr"):
+        raise ValueError(f"--out {out}: must end in .png or .exr")
+    aperture = parse_aperture(args.aperture)
+    if args.model is None and args.max_coc is None:
+        raise ValueError("--max-coc is required (unless --model renders with a network)")
+    rgb, disparity = _read_inputs(args)
+    focus = focus_at(disparity, *args.focus_at) if args.focus_at else args.focus
+    if not 0.0 <= focus <= 1.0:
+        raise ValueError(f"--focus must be a disparity in [0, 1], got {focus}")
+    if args.highlight:
+        rgb = highlight_boost(rgb)
+    if args.model is not None:  # hook: a trained network renders instead (dofsynth.train.infer)
+        from dofsynth.train.infer import render_photo
+
+        result = render_photo(run_dir=args.model, image_linear=rgb, disparity=disparity,
+                              focus=focus, aperture=args.aperture_scale)
+    else:
+        plane = Plane(rgb, np.ones(disparity.shape, np.float32), disparity)
+        with scipy.fft.set_workers(os.cpu_count() or 1):
+            result = render_planes([plane], focus, args.max_coc, aperture, method=args.method)
+    _write(out, np.asarray(result, dtype=np.float32))
+    print(f"wrote {out} (focus {focus:.4f}, max CoC {args.max_coc} px, aperture {args.aperture})")
+    return 0
