@@ -1,0 +1,126 @@
+"""From a sampled `Scene` to the three layered planes, the all-in-focus image, the disparity map
+and the coverages (no blur: the renderer blurs the planes; highlights are left to it too).
+
+All pixels are linear light float32. Resampling: cv2 INTER_AREA when shrinking (both sides not
+larger than the source), INTER_LINEAR otherwise. Foregrounds are resampled premultiplied
+(colour x alpha together with alpha) and turned back to straight colour, so no dark or bright
+fringes come from the transparent surround.
+
+`Layers.disparity` is, at each pixel, the disparity of the front-most plane whose alpha is
+>= 0.5 there (the background's map where neither foreground reaches 0.5): the depth a
+depth sensor or a matting-free annotation would report.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from dofsynth.assets import Asset, AssetLibrary
+from dofsynth.planes import Plane
+from dofsynth.scene import ObjectParams, Scene, placed_size
+
+COVER_THRESHOLD = 0.5
+
+
+@dataclass
+class Layers:
+    planes: list[Plane]        # back to front: background (opaque, disparity map), middle, front
+    aif: np.ndarray            # (H, W, 3) float32 linear: the planes composited "over", no blur
+    disparity: np.ndarray      # (H, W) float32: front-most plane with alpha >= 0.5
+    cover: np.ndarray          # (H, W, 2) float32: (front alpha, middle alpha)
+
+
+def background_disparity(mode: str, b0: float, b1: float, direction: str | None, h: int, w: int) -> np.ndarray:
+    """(H, W) float32 disparity of the background. "flat": b0 everywhere (0 in sampled scenes);
+    "ramp" + "horizontal": b0 at the left pixel column, linear to b1 at the right column;
+    "ramp" + "vertical": b0 at the bottom pixel row, linear to b1 at the top row."""
+    if mode == "flat":
+        return np.full((h, w), b0, dtype=np.float32)
+    if mode != "ramp":
+        raise ValueError(f"background mode must be 'flat' or 'ramp', got {mode!r}")
+    if direction == "horizontal":
+        t = np.linspace(0.0, 1.0, w) if w > 1 else np.zeros(1)
+        row = b0 + (b1 - b0) * t
+        return np.ascontiguousarray(np.broadcast_to(row[None, :], (h, w)), dtype=np.float32)
+    if direction == "vertical":
+        t = np.linspace(1.0, 0.0, h) if h > 1 else np.zeros(1)  # 1 at the top row, 0 at the bottom
+        col = b0 + (b1 - b0) * t
+        return np.ascontiguousarray(np.broadcast_to(col[:, None], (h, w)), dtype=np.float32)
+    raise ValueError(f"ramp direction must be 'horizontal' or 'vertical', got {direction!r}")
+
+
+def resize(img: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Resize to (h, w): INTER_AREA when shrinking, INTER_LINEAR otherwise (float32 kept)."""
+    sh, sw = img.shape[:2]
+    if (sw, sh) == (w, h):
+        return np.array(img, dtype=np.float32, copy=True)
+    interp = cv2.INTER_AREA if (w <= sw and h <= sh) else cv2.INTER_LINEAR
+    out = cv2.resize(np.ascontiguousarray(img, dtype=np.float32), (w, h), interpolation=interp)
+    return out.reshape(h, w, *img.shape[2:])
+
+
+def background_image(rgb: np.ndarray, crop, flip: bool, h: int, w: int) -> np.ndarray:
+    x, y, cw, ch = (int(v) for v in crop)
+    part = rgb[y:y + ch, x:x + cw]
+    if flip:
+        part = part[:, ::-1]
+    return np.clip(resize(part, w, h), 0.0, None)
+
+
+def place_foreground(rgb: np.ndarray, alpha: np.ndarray, extent, params: ObjectParams,
+                     h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Crop the asset to `extent`, flip, resize premultiplied by `params.scale` and put its top-left
+    at (params.x, params.y) of an (h, w) frame. Returns straight colour (H, W, 3) and alpha (H, W),
+    both zero outside the object."""
+    ex, ey, ew, eh = (int(v) for v in extent)
+    a = alpha[ey:ey + eh, ex:ex + ew]
+    premul = np.concatenate([rgb[ey:ey + eh, ex:ex + ew] * a[..., None], a[..., None]], axis=2)
+    if params.flip:
+        premul = premul[:, ::-1]
+    pw, ph = placed_size(params.scale, ew, eh)
+    small = resize(premul, pw, ph)
+    out_rgb = np.zeros((h, w, 3), np.float32)
+    out_a = np.zeros((h, w), np.float32)
+    x0, y0 = max(params.x, 0), max(params.y, 0)
+    x1, y1 = min(params.x + pw, w), min(params.y + ph, h)
+    if x1 <= x0 or y1 <= y0:
+        return out_rgb, out_a
+    part = small[y0 - params.y:y1 - params.y, x0 - params.x:x1 - params.x]
+    pa = np.clip(part[..., 3], 0.0, 1.0)
+    safe = np.maximum(pa, 1e-6)[..., None]
+    out_rgb[y0:y1, x0:x1] = np.where(pa[..., None] > 1e-6, np.clip(part[..., :3], 0.0, None) / safe, 0.0)
+    out_a[y0:y1, x0:x1] = pa
+    return out_rgb, out_a
+
+
+def _asset(library: AssetLibrary, scene: Scene, role: str) -> Asset:
+    asset = library[scene.assets[role].id]
+    if asset.sha256 != scene.assets[role].sha256:
+        raise ValueError(f"{scene.key}: {role} asset {asset.id} has sha256 {asset.sha256[:12]}..., the scene "
+                         f"recorded {scene.assets[role].sha256[:12]}... (the asset changed)")
+    return asset
+
+
+def scene_layers(scene: Scene, library: AssetLibrary) -> Layers:
+    """The planes of `scene` (back to front), its all-in-focus image, disparity and coverages."""
+    h, w = scene.size
+    bgp = scene.background
+    bg_rgb = background_image(library.load_background(_asset(library, scene, "background")), bgp.crop, bgp.flip, h, w)
+    bg_disp = background_disparity(bgp.mode, bgp.b0, bgp.b1, bgp.direction, h, w)
+    planes = [Plane(rgb=bg_rgb, alpha=np.ones((h, w), np.float32), disparity=bg_disp)]
+    for role, params in (("middle", scene.middle), ("front", scene.front)):
+        asset = _asset(library, scene, role)
+        rgb, alpha = library.load_foreground(asset)
+        prgb, pa = place_foreground(rgb, alpha, asset.extent, params, h, w)
+        planes.append(Plane(rgb=prgb, alpha=pa, disparity=float(params.disparity)))
+
+    aif = bg_rgb.copy()
+    disparity = bg_disp.copy()
+    for p in planes[1:]:
+        a = p.alpha[..., None]
+        aif = p.rgb * a + aif * (1.0 - a)
+        disparity[p.alpha >= COVER_THRESHOLD] = p.disparity
+    cover = np.stack([planes[2].alpha, planes[1].alpha], axis=2).astype(np.float32)
+    return Layers(planes=planes, aif=aif.astype(np.float32), disparity=disparity.astype(np.float32), cover=cover)
