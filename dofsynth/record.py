@@ -11,7 +11,8 @@ What the pixels are:
 - `aif.png`: the all-in-focus composite `layers.aif` (linear), sRGB-encoded, 8 bit, un-boosted.
 - `dof.N.png`: `render_planes(planes, focus_N, max_coc_N, aperture)` with each plane's colour
   highlight-boosted first when the record's `options.highlight` is set; clipped to [0, 1],
-  sRGB-encoded, 8 bit.
+  sRGB-encoded, 8 bit. (With `options.linear_light = false`, the naive baseline, the planes are
+  sRGB-encoded before the blur and the result is stored as it is.)
 - `depth.exr`: `layers.disparity` float32, channel Z, ZIP (lossless).
 - `cover.png`: R = front plane alpha, G = middle plane alpha, B = 0 (8 bit, not sRGB-encoded).
 """
@@ -125,6 +126,9 @@ def render_sample(scene, library, recipe) -> dict[str, bytes]:
         h = recipe.render.highlight
         options = {"highlight": {"threshold": h.threshold, "gain": h.gain, "power": h.power} if h.enabled else None}
     blur_planes = boosted_planes(planes, _highlight(options))
+    linear_light = bool(options.get("linear_light", recipe.render.linear_light))
+    if not linear_light:  # the naive baseline: blur sRGB-encoded values, store them as they are
+        blur_planes = [Plane(rgb=linear_to_srgb(p.rgb), alpha=p.alpha, disparity=p.disparity) for p in blur_planes]
     members: dict[str, bytes] = {
         "aif.png": encode_srgb_png(layers.aif),
         "depth.exr": encode_exr(np.asarray(layers.disparity, dtype=np.float32)),
@@ -132,7 +136,8 @@ def render_sample(scene, library, recipe) -> dict[str, bytes]:
     }
     for n, t in enumerate(record["targets"]):
         img = render_planes(blur_planes, float(t["focus"]), float(t["max_coc"]), aperture)
-        members[f"dof.{n}.png"] = encode_srgb_png(img)
+        members[f"dof.{n}.png"] = (encode_srgb_png(img) if linear_light
+                                   else encode_png(np.clip(img, 0.0, 1.0), compression=PNG_COMPRESSION))
     members["json"] = encode_record(record)
     return members
 

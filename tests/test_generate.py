@@ -1,0 +1,217 @@
+"""generate: plan, determinism across workers, kill + resume, the lock, refusing a used folder."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dofsynth.cli import main
+from dofsynth.config import load_recipe, recipe_from_text
+from dofsynth.generate import (OutputInUseError, OutputLock, OutputNotEmptyError, ResumeError, generate,
+                               generate_shard, plan_split, render_one, shard_task, _library_for)
+from dofsynth.manifest import load_manifest
+from dofsynth.shards import read_shard
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ROOT / "recipes" / "smoke.toml"
+
+
+@pytest.fixture(scope="module")
+def recipe():
+    return load_recipe(SMOKE)
+
+
+def _files(out: Path) -> dict[str, bytes]:
+    """Every file of a data set folder by relative path (hidden files included)."""
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def reference(recipe, tmp_path_factory):
+    """The uninterrupted single-worker data set every other run must equal byte for byte."""
+    out = tmp_path_factory.mktemp("ref") / "data"
+    result = generate(recipe, out, workers=1, progress=False)
+    return out, result
+
+
+def test_plan_shards_consecutive_indices(recipe):
+    size = recipe.shard_size
+    for split in ("train", "test"):
+        tasks = plan_split(recipe, split)
+        n = recipe.samples.count(split)
+        assert sum(t.samples for t in tasks) == n
+        assert [t.first_index for t in tasks] == list(range(0, n, size))
+        assert all(t.samples == size for t in tasks[:-1]) and 0 < tasks[-1].samples <= size
+    short = plan_split(recipe, "train", limit=size + 1)
+    assert [(t.first_index, t.samples) for t in short] == [(0, size), (size, 1)]
+    assert plan_split(recipe, "train", limit=0) == []
+    with pytest.raises(ValueError, match="plan has shards"):
+        shard_task(recipe, "train", 99)
+    with pytest.raises(ValueError, match="split 'val'"):
+        plan_split(recipe, "val")
+
+
+def test_reference_layout_and_manifest(recipe, reference):
+    out, result = reference
+    files = _files(out)
+    assert "manifest.json" in files and ".lock" not in files and ".progress.jsonl" not in files
+    assert not [f for f in files if ".tmp" in f]
+    manifest = load_manifest(out)
+    for split in ("train", "test"):
+        block = manifest["splits"][split]
+        assert block["samples"] == recipe.samples.count(split)
+        for s in block["shards"]:
+            assert s["path"] in files and len(files[s["path"]]) == s["bytes"]
+            assert [k for k, _ in read_shard(out / s["path"])] == \
+                [f"{split}-{i:07d}" for i in range(s["first_index"], s["first_index"] + s["samples"])]
+    assert manifest["recipe"]["sha256"] == recipe.sha256 and manifest["recipe"]["text"] == recipe.text
+    assert result.samples == result.generated_samples == manifest["totals"]["samples"]
+    assert result.bytes == sum(len(v) for k, v in files.items() if k.endswith(".tar"))
+
+
+def test_two_workers_give_identical_bytes(recipe, reference, tmp_path):
+    out = tmp_path / "w2"
+    generate(recipe, out, workers=2, progress=False)
+    assert _files(out) == _files(reference[0])
+
+
+def test_sample_alone_equals_sample_in_batch(recipe, reference, tmp_path):
+    out = reference[0]
+    library = _library_for(recipe)
+    k = recipe.samples.count("train") - 1
+    shard = shard_task(recipe, "train", k // recipe.shard_size)
+    batch = dict(read_shard(out / shard.path))
+    key, alone = render_one(recipe, library, "train", k)
+    assert batch[key] == alone
+    info = generate_shard(recipe, tmp_path, "test", 0)  # one shard on its own, fresh library
+    assert (tmp_path / info.path).read_bytes() == (out / info.path).read_bytes()
+
+
+def test_limit_then_resume_equals_full_run(recipe, reference, tmp_path):
+    out = tmp_path / "lim"
+    lim = generate(recipe, out, limit=recipe.shard_size + 1, progress=False)
+    assert lim.manifest["splits"]["train"]["samples"] == recipe.shard_size + 1
+    assert lim.manifest["splits"]["train"]["limit"] == recipe.shard_size + 1
+    ref = reference[0]
+    # a limit keeps the first samples unchanged: the first (full) shard is identical
+    assert (out / "train/train-000000.tar").read_bytes() == (ref / "train/train-000000.tar").read_bytes()
+    (out / "train/train-000000.tar").unlink()                       # a lost shard
+    (out / "test" / ".test-000000.tar.tmp-4242").write_bytes(b"half")  # a killed run's temp file
+    res = generate(recipe, out, resume=True, progress=False)
+    assert _files(out) == _files(ref)
+    assert res.kept_shards >= 1 and "test/.test-000000.tar.tmp-4242" in res.removed
+
+
+_SLOW_RUN = """
+import sys, time
+import dofsynth.shards as shards
+_write = shards.ShardWriter.write
+def slow(self, *a, **k):
+    _write(self, *a, **k)
+    time.sleep(0.25)
+shards.ShardWriter.write = slow
+from dofsynth.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_sigkill_midway_then_resume_is_byte_identical(recipe, reference, tmp_path):
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-c", _SLOW_RUN, "generate", str(SMOKE), "--out", str(out), "--quiet"],
+                            start_new_session=True, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 60
+        while not (out / "train" / "train-000001.tar").exists():  # two shards done, a third begun
+            assert proc.poll() is None, proc.stderr.read().decode()
+            assert time.monotonic() < deadline, "the run never finished a shard"
+            time.sleep(0.01)
+        time.sleep(0.1)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    left = _files(out)
+    assert "manifest.json" not in left and ".lock" in left and ".progress.jsonl" in left
+    assert any(".tmp-" in name for name in left), sorted(left)
+    # the dead run's lock file does not block; without --resume the folder is refused
+    with pytest.raises(OutputNotEmptyError, match="--resume"):
+        generate(recipe, out, progress=False)
+    res = generate(recipe, out, resume=True, progress=False)
+    assert res.kept_shards >= 2
+    assert _files(out) == _files(reference[0])
+    # resuming a finished data set renders nothing and changes nothing
+    again = generate(recipe, out, resume=True, progress=False)
+    assert again.generated_samples == 0 and _files(out) == _files(reference[0])
+
+
+def test_corrupt_shard_is_regenerated_on_resume(recipe, reference, tmp_path):
+    out = tmp_path / "corrupt"
+    generate(recipe, out, progress=False)
+    p = out / "train" / "train-000000.tar"
+    data = bytearray(p.read_bytes())
+    data[600] ^= 0xFF  # a flipped bit inside the first member: the manifest's sha256 catches it
+    p.write_bytes(bytes(data))
+    res = generate(recipe, out, resume=True, progress=False)
+    assert res.generated_shards == 1
+    assert _files(out) == _files(reference[0])
+
+
+def test_split_by_split_then_resume_equals_all(recipe, reference, tmp_path):
+    out = tmp_path / "bysplit"
+    generate(recipe, out, splits=("test",), progress=False)
+    assert set(load_manifest(out)["splits"]) == {"test"}
+    generate(recipe, out, splits=("train",), resume=True, progress=False)
+    assert _files(out) == _files(reference[0])
+
+
+def test_second_concurrent_run_is_refused(recipe, tmp_path, capsys):
+    out = tmp_path / "locked"
+    with OutputLock(out):
+        assert (out / ".lock").read_text().strip() == str(os.getpid())
+        with pytest.raises(OutputInUseError) as err:
+            generate(recipe, out, progress=False)
+        assert str(out) in str(err.value) and str(os.getpid()) in str(err.value)
+        assert main(["generate", str(SMOKE), "--out", str(out), "--quiet"]) == 2
+        assert str(out) in capsys.readouterr().err
+    assert not (out / ".lock").exists()
+    generate(recipe, out, limit=1, progress=False)  # free again
+
+
+def test_used_folder_is_refused_without_resume(recipe, tmp_path, capsys):
+    out = tmp_path / "used"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert main(["generate", str(SMOKE), "--out", str(out), "--limit", "1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert str(out) in err and "--resume" in err and "new --out" in err
+    with pytest.raises(ResumeError, match="not a dofsynth data set"):
+        generate(recipe, out, resume=True, progress=False)
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_resume_with_another_recipe_is_refused(recipe, tmp_path):
+    out = tmp_path / "other"
+    generate(recipe, out, limit=1, progress=False)
+    other = recipe_from_text(recipe.text.replace(f"seed = {recipe.seed}", f"seed = {recipe.seed + 1}"),
+                             "other.toml", SMOKE.parent)
+    assert other.sha256 != recipe.sha256
+    with pytest.raises(ResumeError, match="sha256"):
+        generate(other, out, resume=True, progress=False)
+
+
+def test_cli_generate_with_summary(tmp_path, capsys):
+    out, summary = tmp_path / "cli", tmp_path / "data_manifest" / "datasets" / "smoke.json"
+    rc = main(["generate", str(SMOKE), "--out", str(out), "--split", "test", "--limit", "1",
+               "--workers", "2", "--save-summary", str(summary)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "samples/s" in text and "1 in 1 shards" in text
+    s = json.loads(summary.read_text())
+    assert s["splits"]["test"]["samples"] == 1 and "train" not in s["splits"]
+    assert s["recipe"]["sha256"] == load_manifest(out)["recipe"]["sha256"]
+    with pytest.raises(SystemExit):
+        main(["generate", str(SMOKE), "--out", str(tmp_path / "x"), "--workers", "0"])
+    assert "--workers" in capsys.readouterr().err
