@@ -1,0 +1,156 @@
+"""Depth corruption: make the clean disparity of a synthetic sample look like an estimated one.
+
+DeepLens trains its lens-blur network on disparity that is deliberately wrong near object
+boundaries, so that at test time it tolerates the errors of a depth estimator: each foreground
+plane's region is dilated or eroded by a random kernel. Dilated pixels take that plane's
+disparity; eroded-away pixels take the disparity of what lies behind. Further kinds, off by
+default: a Gaussian blur of the map (soft edges), additive noise, quantization (8-bit-like
+depth) and a small shift of the whole map.
+
+Only the disparity the network *sees* is corrupted; the targets stay as rendered. Everything
+here is numpy/cv2 (no torch) and takes an explicit `rng`. As elsewhere in dofsynth, parameters
+are sampled first (`sample_corruption`, a JSON-able dict) and then applied
+(`apply_corruption`), so a record of the parameters replays the corruption exactly.
+Every random kind draws from its own child generator, so switching one kind off does not change
+what the others sample.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+MORPH_OPS = ("dilate", "erode")
+
+
+@dataclass(frozen=True)
+class Layers:
+    """The layered disparity of a sample, back to front.
+
+    background: (H, W) float32 disparity of the background plane (no foreground).
+    planes: [(mask, disparity), ...] foreground planes back to front; mask (H, W) bool is where
+        the plane covers the pixel (alpha > 0.5), disparity its constant disparity in [0, 1].
+    """
+    background: np.ndarray
+    planes: tuple[tuple[np.ndarray, float], ...]
+
+
+def background_disparity(record: dict, shape: tuple[int, int]) -> np.ndarray:
+    """The background disparity map (H, W) from a sample record's `background` block
+    (docs/FORMAT.md: "horizontal" runs b0 at the left edge to b1 at the right edge, "vertical"
+    b0 at the bottom edge to b1 at the top edge; sampled at pixel centres)."""
+    h, w = shape
+    bg = record["background"]
+    b0 = float(bg["b0"])
+    b1 = float(bg.get("b1", b0) if bg.get("b1") is not None else b0)
+    if bg["mode"] == "flat":
+        return np.full((h, w), b0, np.float32)
+    if bg["mode"] != "ramp":
+        raise ValueError(f"record {record.get('key')}: unknown background mode {bg['mode']!r}")
+    if bg["direction"] == "horizontal":
+        t = ((np.arange(w) + 0.5) / w)[None, :]
+    elif bg["direction"] == "vertical":
+        t = ((h - np.arange(h) - 0.5) / h)[:, None]
+    else:
+        raise ValueError(f"record {record.get('key')}: unknown ramp direction {bg['direction']!r}")
+    return np.broadcast_to(b0 + (b1 - b0) * t, (h, w)).astype(np.float32)
+
+
+def layers_from_record(record: dict, cover: np.ndarray) -> Layers:
+    """Layers from a record and its cover image (H, W, >=2) in [0, 1]: R = front alpha,
+    G = middle alpha (docs/FORMAT.md). Planes come back to front: middle, then front."""
+    h, w = cover.shape[:2]
+    planes = (
+        (cover[:, :, 1] > 0.5, float(record["middle"]["disparity"])),
+        (cover[:, :, 0] > 0.5, float(record["front"]["disparity"])),
+    )
+    return Layers(background_disparity(record, (h, w)), planes)
+
+
+def _odd_between(rng: np.random.Generator, lo: int, hi: int) -> int:
+    odds = np.arange(lo | 1, hi + 1, 2)
+    return int(rng.choice(odds)) if odds.size else int(lo | 1)
+
+
+def sample_corruption(n_planes: int, cfg, rng: np.random.Generator) -> dict:
+    """Sample corruption parameters (a JSON-able dict) for a sample with `n_planes` foreground
+    planes. `cfg` is a dofsynth.train.config.AugmentConfig (or anything with its fields)."""
+    params: dict = {"morph": [None] * n_planes, "shift": None, "edge_blur": None, "noise": None,
+                    "quantize": None}
+    if not cfg.enabled:
+        return params
+    r_morph, r_shift, r_blur, r_noise, r_quant = rng.spawn(5)
+    for i in range(n_planes):
+        if r_morph.random() < cfg.morph_prob:
+            op = MORPH_OPS[int(r_morph.integers(2))]
+            params["morph"][i] = {"op": op, "kernel": _odd_between(r_morph, *cfg.morph_kernel)}
+    if r_shift.random() < cfg.shift_prob and cfg.shift_max > 0:
+        params["shift"] = [int(v) for v in r_shift.integers(-cfg.shift_max, cfg.shift_max + 1, size=2)]
+    if r_blur.random() < cfg.edge_blur_prob:
+        params["edge_blur"] = float(r_blur.uniform(*cfg.edge_blur_sigma))
+    if r_noise.random() < cfg.noise_prob:
+        params["noise"] = {"std": float(r_noise.uniform(*cfg.noise_std)),
+                           "seed": int(r_noise.integers(2**31))}
+    if r_quant.random() < cfg.quantize_prob:
+        params["quantize"] = int(r_quant.integers(cfg.quantize_levels[0], cfg.quantize_levels[1] + 1))
+    return params
+
+
+def morph_mask(mask: np.ndarray, op: str, kernel: int) -> np.ndarray:
+    """Dilate or erode a bool mask with an elliptical (disk-like) kernel of side `kernel` px."""
+    se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kernel, kernel))
+    m = mask.astype(np.uint8)
+    if op == "dilate":
+        out = cv2.dilate(m, se, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    elif op == "erode":
+        out = cv2.erode(m, se, borderType=cv2.BORDER_REPLICATE)
+    else:
+        raise ValueError(f"morphology op must be one of {MORPH_OPS}, got {op!r}")
+    return out.astype(bool)
+
+
+def apply_corruption(disparity: np.ndarray, layers: Layers, params: dict) -> np.ndarray:
+    """Apply sampled corruption parameters to a clean disparity map (H, W) float32 in [0, 1].
+
+    Order: plane morphology (back to front), shift, edge blur, noise, quantization; the result
+    is clipped to [0, 1]. The input is not modified.
+    """
+    d = np.array(disparity, dtype=np.float32, copy=True)
+    if d.ndim != 2 or d.shape != layers.background.shape:
+        raise ValueError(f"disparity must be (H, W) = {layers.background.shape}, got {d.shape}")
+    morph = params.get("morph") or [None] * len(layers.planes)
+    if len(morph) != len(layers.planes):
+        raise ValueError(f"params['morph'] has {len(morph)} entries for {len(layers.planes)} planes")
+    behind = layers.background.astype(np.float32)
+    for i, ((mask, plane_d), m) in enumerate(zip(layers.planes, morph)):
+        new_mask = mask if m is None else morph_mask(mask, m["op"], int(m["kernel"]))
+        in_front = np.zeros_like(mask)
+        for later_mask, _ in layers.planes[i + 1:]:
+            in_front |= later_mask
+        grown = new_mask & ~mask & ~in_front
+        shrunk = mask & ~new_mask & ~in_front
+        d[grown] = plane_d
+        d[shrunk] = behind[shrunk]
+        behind = np.where(new_mask, np.float32(plane_d), behind)
+    if params.get("shift"):
+        dy, dx = params["shift"]
+        mat = np.float32([[1, 0, dx], [0, 1, dy]])
+        d = cv2.warpAffine(d, mat, (d.shape[1], d.shape[0]), flags=cv2.INTER_NEAREST,
+                           borderMode=cv2.BORDER_REPLICATE)
+    if params.get("edge_blur"):
+        d = cv2.GaussianBlur(d, (0, 0), sigmaX=float(params["edge_blur"]), borderType=cv2.BORDER_REFLECT)
+    if params.get("noise"):
+        n = params["noise"]
+        d = d + np.random.default_rng(n["seed"]).normal(0.0, n["std"], d.shape).astype(np.float32)
+    if params.get("quantize"):
+        q = int(params["quantize"]) - 1
+        d = np.round(np.clip(d, 0.0, 1.0) * q) / q
+    return np.clip(d, 0.0, 1.0).astype(np.float32)
+
+
+def corrupt_disparity(disparity: np.ndarray, layers: Layers, cfg, rng: np.random.Generator
+                      ) -> tuple[np.ndarray, dict]:
+    """Sample and apply a corruption: returns (corrupted (H, W) float32, params)."""
+    params = sample_corruption(len(layers.planes), cfg, rng)
+    return apply_corruption(disparity, layers, params), params

@@ -1,0 +1,73 @@
+"""Checkpoints: one dict per file, as in nanoGPT.
+
+    {"model": state_dict, "optimizer": state_dict, "step": int, "epoch": int, "batch": int,
+     "config": Config.to_dict(), "rng": {"torch", "cuda", "python"}, "best_val": float|None,
+     "format": 1}
+
+`step` counts finished optimizer steps; (epoch, batch) is where the data stream stands, so a
+resumed run continues with the next batch. Files are written through a temporary name and a
+rename, so RUN/ckpt.pt is always complete.
+"""
+from __future__ import annotations
+
+import os
+import random
+from pathlib import Path
+
+import torch
+
+from dofsynth.train.config import Config, from_dict
+from dofsynth.train.models import DeepLensNet
+
+CHECKPOINT = "ckpt.pt"
+FORMAT = 1
+
+
+def rng_states() -> dict:
+    return {"torch": torch.get_rng_state(), "python": random.getstate(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None}
+
+
+def set_rng_states(states: dict) -> None:
+    torch.set_rng_state(states["torch"])
+    random.setstate(states["python"])
+    if states.get("cuda") is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(states["cuda"])
+
+
+def unwrap(model: torch.nn.Module) -> torch.nn.Module:
+    """The plain module inside DistributedDataParallel and/or torch.compile wrappers."""
+    model = getattr(model, "module", model)
+    return getattr(model, "_orig_mod", model)
+
+
+def save(path: str | Path, model, optimizer, step: int, epoch: int, batch: int, cfg: Config,
+         best_val: float | None = None) -> None:
+    path = Path(path)
+    state = {"model": unwrap(model).state_dict(), "optimizer": optimizer.state_dict(),
+             "step": step, "epoch": epoch, "batch": batch, "config": cfg.to_dict(),
+             "rng": rng_states(), "best_val": best_val, "format": FORMAT}
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load(path: str | Path, map_location="cpu") -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no checkpoint")
+    state = torch.load(path, map_location=map_location, weights_only=False)
+    if state.get("format") != FORMAT:
+        raise ValueError(f"{path}: checkpoint format {state.get('format')}, expected {FORMAT}")
+    return state
+
+
+def load_model(run_dir: str | Path, device="cpu") -> tuple[DeepLensNet, Config]:
+    """The trained model (eval mode, on `device`) and the config of RUN/ckpt.pt."""
+    run_dir = Path(run_dir)
+    path = run_dir / CHECKPOINT if run_dir.is_dir() else run_dir
+    state = load(path)
+    cfg = from_dict(state["config"], str(path))
+    model = DeepLensNet(cfg.model)
+    model.load_state_dict(state["model"])
+    return model.to(device).eval(), cfg

@@ -1,0 +1,176 @@
+"""The DeepLens networks: a lens-blur network at low resolution and a guided upsampler.
+
+Shapes are (B, C, H, W). Images are in the colour space of [data] color (sRGB-encoded or linear,
+[0, 1]-ish); `signed` is the signed disparity s = (d - focus) * max_coc / r_max = c / r_max, the
+signed circle-of-confusion radius over the largest aperture's max CoC (dimensionless, about
+[-1, 1]; 0 = in focus, > 0 in front of the focal plane). A smaller aperture r* is rendered by
+feeding s * r*/r_max.
+
+LensBlurNet (Wang et al. 2018, Sec. 4.2):
+  F = ChannelFeatures(A): every colour channel A_i goes through the same stack of 3x3 convs
+      with ReLU (dilations 1, 2, 4, 8 by default, so the features span blurs of many sizes);
+      the intermediate maps are concatenated to c channels: F (B, 3, c, H, W).
+  K = KernelPredictor(A, s): a small U-Net gives a per-pixel kernel of c weights (B, c, H, W).
+  L_i = sum_j K_j * F_ij: the lens-blurred image (B, 3, H, W).
+
+GuidedUpsampler (Sec. 4.3), one x2 step with weights shared across steps:
+  features of the low-res (A, L, s), bilinearly upsampled, and features of the high-res A
+  predict two weight maps; M_L = sigmoid(.), M_A = 1 - M_L (a convex blend, so in-focus pixels
+  can keep the sharp image exactly): H = M_A * A + M_L * upsample(L).
+  Applied recurrently from the low resolution to any size: the size chain halves the target
+  size (rounding up) `steps` times, so non-power-of-two sizes are exact at every step.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dofsynth.train.config import ModelConfig
+
+
+def size_chain(size: tuple[int, int], steps: int) -> list[tuple[int, int]]:
+    """Sizes from the lowest to `size`: each is the next one halved, rounded up.
+    size_chain((100, 60), 2) == [(25, 15), (50, 30), (100, 60)]."""
+    sizes = [tuple(size)]
+    for _ in range(steps):
+        h, w = sizes[0]
+        sizes.insert(0, ((h + 1) // 2, (w + 1) // 2))
+    return sizes
+
+
+def area_resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Area (box-mean) downsample of (B, C, H, W) to `size`; exact block means for integer factors."""
+    return x if tuple(x.shape[-2:]) == tuple(size) else F.adaptive_avg_pool2d(x, size)
+
+
+def bilinear(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    return x if tuple(x.shape[-2:]) == tuple(size) else F.interpolate(
+        x, size=size, mode="bilinear", align_corners=False)
+
+
+def conv(cin: int, cout: int, dilation: int = 1, stride: int = 1) -> nn.Conv2d:
+    """3x3 convolution that keeps the size (stride 1) or halves it rounding up (stride 2);
+    replicate padding, so a flat image stays flat up to the border."""
+    return nn.Conv2d(cin, cout, 3, stride=stride, padding=dilation, dilation=dilation,
+                     padding_mode="replicate")
+
+
+class ChannelFeatures(nn.Module):
+    """(B, 3, H, W) image -> (B, 3, c, H, W): the same conv stack on each colour channel alone;
+    c = channels * len(dilations), the concatenation of every layer's ReLU output."""
+
+    def __init__(self, channels: int = 8, dilations: tuple[int, ...] = (1, 2, 4, 8)):
+        super().__init__()
+        cins = [1] + [channels] * (len(dilations) - 1)
+        self.layers = nn.ModuleList(conv(ci, channels, d) for ci, d in zip(cins, dilations))
+        self.out_channels = channels * len(dilations)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        b, n, h, w = image.shape
+        x = image.reshape(b * n, 1, h, w)
+        feats = []
+        for layer in self.layers:
+            x = F.relu(layer(x))
+            feats.append(x)
+        return torch.cat(feats, dim=1).reshape(b, n, self.out_channels, h, w)
+
+
+class KernelPredictor(nn.Module):
+    """(B, 3, H, W) image and (B, 1, H, W) signed disparity -> (B, c, H, W) per-pixel weights.
+    A U-Net of `depth` stride-2 levels (widths width * 2**k) with skip connections."""
+
+    def __init__(self, out_channels: int, width: int = 32, depth: int = 3):
+        super().__init__()
+        widths = [width * 2**k for k in range(depth + 1)]
+        self.stem = nn.Sequential(conv(4, width), nn.ReLU(), conv(width, width), nn.ReLU())
+        self.down = nn.ModuleList(
+            nn.Sequential(conv(widths[k], widths[k + 1], stride=2), nn.ReLU(),
+                          conv(widths[k + 1], widths[k + 1]), nn.ReLU()) for k in range(depth))
+        self.up = nn.ModuleList(
+            nn.Sequential(conv(widths[k + 1] + widths[k], widths[k]), nn.ReLU()) for k in reversed(range(depth)))
+        self.head = nn.Conv2d(width, out_channels, 1)
+
+    def forward(self, image: torch.Tensor, signed: torch.Tensor) -> torch.Tensor:
+        x = self.stem(torch.cat([image, signed], dim=1))
+        skips = []
+        for down in self.down:
+            skips.append(x)
+            x = down(x)
+        for up, skip in zip(self.up, reversed(skips)):
+            x = up(torch.cat([bilinear(x, skip.shape[-2:]), skip], dim=1))
+        return self.head(x)
+
+
+class LensBlurNet(nn.Module):
+    """(B, 3, h, w) low-res image, (B, 1, h, w) signed disparity -> (B, 3, h, w) blurred L."""
+
+    def __init__(self, feat_channels: int = 8, dilations: tuple[int, ...] = (1, 2, 4, 8),
+                 kp_width: int = 32, kp_depth: int = 3):
+        super().__init__()
+        self.features = ChannelFeatures(feat_channels, dilations)
+        self.kernel = KernelPredictor(self.features.out_channels, kp_width, kp_depth)
+
+    def forward(self, image: torch.Tensor, signed: torch.Tensor) -> torch.Tensor:
+        _check(image, 3, "image"), _check(signed, 1, "signed", image.shape[-2:])
+        feats = self.features(image)          # (B, 3, c, h, w)
+        k = self.kernel(image, signed)        # (B, c, h, w)
+        return (feats * k.unsqueeze(1)).sum(dim=2)
+
+
+class GuidedUpsampler(nn.Module):
+    """One upsampling step: low-res image, result and signed disparity (B, 3|3|1, h, w) plus the
+    high-res image (B, 3, H, W) -> high-res result (B, 3, H, W) (any H, W; x2 in practice)."""
+
+    def __init__(self, width: int = 16):
+        super().__init__()
+        self.low = nn.Sequential(conv(7, width), nn.ReLU(), conv(width, width), nn.ReLU())
+        self.high = nn.Sequential(conv(3, width), nn.ReLU(), conv(width, width), nn.ReLU())
+        self.fuse = nn.Sequential(conv(2 * width, width), nn.ReLU(), nn.Conv2d(width, 1, 1))
+
+    def forward(self, image_lo, result_lo, signed_lo, image_hi):
+        size = image_hi.shape[-2:]
+        low = bilinear(self.low(torch.cat([image_lo, result_lo, signed_lo], dim=1)), size)
+        m_l = torch.sigmoid(self.fuse(torch.cat([low, self.high(image_hi)], dim=1)))
+        return (1 - m_l) * image_hi + m_l * bilinear(result_lo, size)
+
+
+class DeepLensNet(nn.Module):
+    """Both networks: `forward(image, signed_lo, steps)` -> (L, H).
+
+    image: (B, 3, H, W) high-res all-in-focus image. signed_lo: (B, 1, h, w) signed disparity at
+    the lowest size of `size_chain((H, W), steps)`. image_lo: optional (B, 3, h, w) low-res image
+    (else area-downsampled here). Returns L (B, 3, h, w), the lens blur at low resolution, and
+    H (B, 3, H, W) after `steps` guided x2 upsamplings.
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.lens = LensBlurNet(cfg.feat_channels, tuple(cfg.feat_dilations), cfg.kp_width, cfg.kp_depth)
+        self.up = GuidedUpsampler(cfg.up_width)
+
+    def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int,
+                image_lo: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        sizes = size_chain(tuple(image.shape[-2:]), steps)
+        _check(image, 3, "image"), _check(signed_lo, 1, "signed_lo", sizes[0])
+        pyramid = [area_resize(image, s) for s in sizes]
+        if image_lo is not None:
+            _check(image_lo, 3, "image_lo", sizes[0])
+            pyramid[0] = image_lo
+        low = self.lens(pyramid[0], signed_lo)
+        result = low
+        for k in range(steps):
+            signed_k = bilinear(signed_lo, sizes[k])
+            result = self.up(pyramid[k], result, signed_k, pyramid[k + 1])
+        return low, result
+
+
+def _check(x: torch.Tensor, channels: int, name: str, size=None) -> None:
+    if x.ndim != 4 or x.shape[1] != channels:
+        raise ValueError(f"{name} must be (B, {channels}, H, W), got {tuple(x.shape)}")
+    if size is not None and tuple(x.shape[-2:]) != tuple(size):
+        raise ValueError(f"{name} must be {tuple(size)} in size, got {tuple(x.shape[-2:])}")
+
+
+def build_model(cfg: ModelConfig) -> DeepLensNet:
+    return DeepLensNet(cfg)

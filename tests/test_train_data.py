@@ -1,0 +1,188 @@
+"""The shard loader (dofsynth.train.data); also home of `make_dataset`, the tiny synthetic data
+set (docs/FORMAT.md) that the other test_train_* files import."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import webdataset as wds
+
+from dofsynth.io import decode_exr, decode_image, encode_exr, encode_png
+from dofsynth.train.config import Config, from_dict
+from dofsynth.train.data import DofShards, area_downsample, decode_sample, find_shards, make_loader, resolve, sample_rng
+
+TINY = {
+    "data": {"crop": 32, "levels": 1, "batch_size": 4, "num_workers": 0, "shuffle_buffer": 8},
+    "augment": {"morph_prob": 0.5, "morph_kernel": [3, 5]},
+    "model": {"feat_channels": 4, "kp_width": 8, "kp_depth": 2, "up_width": 8},
+    "train": {"max_steps": 4, "lr": 3e-3, "warmup_steps": 1, "log_interval": 1, "eval_interval": 2,
+              "eval_batches": 1, "checkpoint_interval": 2},
+}
+
+
+def tiny_config(**tables) -> Config:
+    d = {k: dict(v) for k, v in TINY.items()}
+    for table, kw in tables.items():
+        d.setdefault(table, {}).update(kw)
+    return from_dict(d)
+
+
+def blur_target(aif: np.ndarray, disparity: np.ndarray, focus: float, max_coc: float) -> np.ndarray:
+    """A simple stand-in for a DoF render: per pixel, mix the image and a Gaussian blur of it by
+    the CoC size |c| / max_coc (enough for shape tests and for the overfit test)."""
+    blurred = cv2.GaussianBlur(aif, (0, 0), sigmaX=max(0.5, max_coc / 2), borderType=cv2.BORDER_REFLECT)
+    w = np.clip(np.abs(disparity - focus) * 2.0, 0.0, 1.0)[:, :, None]
+    return (1 - w) * aif + w * blurred
+
+
+def make_sample(split: str, index: int, size: int, seed: int = 0) -> dict:
+    """One sample's members (FORMAT.md): background texture on a ramp or flat plane, a middle
+    rectangle and a front disk, two DoF targets."""
+    rng = np.random.default_rng([seed, index, len(split)])
+    h = w = size
+    noise = rng.random((h // 4, w // 4, 3)).astype(np.float32)
+    bg = cv2.resize(noise, (w, h), interpolation=cv2.INTER_CUBIC).clip(0, 1)
+    yy, xx = np.mgrid[0:h, 0:w]
+    mid = ((np.abs(yy - h * rng.uniform(0.3, 0.7)) < h / 5) & (np.abs(xx - w * rng.uniform(0.3, 0.7)) < w / 4))
+    cy, cx, r = h * rng.uniform(0.3, 0.7), w * rng.uniform(0.3, 0.7), size / 6
+    front = (yy - cy) ** 2 + (xx - cx) ** 2 < r**2
+    ramp = index % 2 == 0
+    b0, b1 = 0.1, 0.3
+    record = {
+        "schema_version": 1, "key": f"{split}-{index:07d}", "split": split, "index": index,
+        "seed": [seed, 0, index], "size": [h, w],
+        "assets": {}, "aperture": {"kind": "disk"}, "options": {}, "renderer": "test",
+        "background": {"mode": "ramp" if ramp else "flat", "b0": b0, "b1": b1 if ramp else None,
+                       "direction": "horizontal" if ramp else None, "crop": [0, 0, w, h], "flip": False},
+        "middle": {"disparity": 0.5, "scale": 1.0, "x": 0, "y": 0, "flip": False},
+        "front": {"disparity": 0.8, "scale": 1.0, "x": 0, "y": 0, "flip": False},
+        "targets": [{"focus": 0.8, "max_coc": 4.0}, {"focus": 0.2, "max_coc": 2.0}],
+    }
+    xs = (np.arange(w) + 0.5) / w
+    depth = np.broadcast_to(b0 + (b1 - b0) * xs if ramp else np.full(w, b0), (h, w)).astype(np.float32).copy()
+    depth[mid], depth[front] = 0.5, 0.8
+    aif = bg.copy()
+    aif[mid] = [0.9, 0.2, 0.1]
+    aif[front] = rng.random(3)
+    cover = np.zeros((h, w, 3), np.float32)
+    cover[:, :, 0], cover[:, :, 1] = front, mid
+    members = {"__key__": record["key"], "aif.png": encode_png(aif), "depth.exr": encode_exr(depth),
+               "cover.png": encode_png(cover), "json": json.dumps(record, sort_keys=True).encode()}
+    for n, t in enumerate(record["targets"]):
+        members[f"dof.{n}.png"] = encode_png(blur_target(aif, depth, t["focus"], t["max_coc"]))
+    return members
+
+
+def make_dataset(out: Path, n_train: int = 8, n_test: int = 2, size: int = 32, per_shard: int = 4) -> Path:
+    """A tiny data set OUT/{train,test}/<split>-NNNNNN.tar of `size` px samples."""
+    for split, n in (("train", n_train), ("test", n_test)):
+        (out / split).mkdir(parents=True, exist_ok=True)
+        for s0 in range(0, n, per_shard):
+            with wds.TarWriter(str(out / split / f"{split}-{s0 // per_shard:06d}.tar"), mtime=0) as sink:
+                for i in range(s0, min(n, s0 + per_shard)):
+                    sink.write(make_sample(split, i, size))
+    return out
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    return make_dataset(tmp_path_factory.mktemp("data"), n_train=12, n_test=2, size=48, per_shard=4)
+
+
+def test_resolve_reads_coc_ref_and_low_res_side_from_the_data(data_dir):
+    cfg = resolve(tiny_config(), data_dir)
+    assert cfg.model.coc_ref == 4.0 and cfg.infer.low_res_side == 24
+    kept = resolve(tiny_config(model={"coc_ref": 8.0}, infer={"low_res_side": 10}), data_dir)
+    assert kept.model.coc_ref == 8.0 and kept.infer.low_res_side == 10
+
+
+def test_items_have_the_documented_shapes_ranges_and_exact_low_res(data_dir):
+    cfg = resolve(tiny_config(), data_dir)
+    _, loader = make_loader(data_dir, "train", cfg, train=True, seed=0)
+    batch = next(iter(loader))
+    assert batch["image"].shape == (4, 3, 32, 32) and batch["target"].shape == (4, 3, 32, 32)
+    for k in ("image_lo", "target_lo"):
+        assert batch[k].shape == (4, 3, 16, 16)
+    assert batch["signed_lo"].shape == (4, 1, 16, 16) and batch["disparity"].shape == (4, 1, 32, 32)
+    for k in ("image", "image_lo", "target", "target_lo", "disparity"):
+        assert batch[k].dtype == torch.float32 and 0.0 <= batch[k].min() and batch[k].max() <= 1.0
+    # low res = exact 2x2 block means; signed = (corrupted d - focus) * max_coc / coc_ref
+    assert torch.allclose(batch["image_lo"], torch.nn.functional.avg_pool2d(batch["image"], 2), atol=1e-6)
+    expect = (torch.nn.functional.avg_pool2d(batch["disparity"], 2) - batch["focus"].view(-1, 1, 1, 1)) \
+        * (batch["max_coc"] / cfg.model.coc_ref).view(-1, 1, 1, 1)
+    assert torch.allclose(batch["signed_lo"], expect.float(), atol=1e-5)
+    assert batch["signed_lo"].abs().max() <= 1.0
+
+
+def _raw(data_dir, index=0):
+    return next(iter(wds.tariterators.tarfile_samples([{"url": find_shards(data_dir, "train")[0]}])))
+
+
+def test_target_choice_crop_alignment_and_the_target_is_never_corrupted(data_dir):
+    cfg = resolve(tiny_config(data={"target": "1"}, augment={"morph_prob": 1.0, "noise_prob": 1.0}), data_dir)
+    raw = _raw(data_dir)
+    full = decode_sample(raw, cfg, sample_rng(0, 0, "train", 0))
+    assert full["target_index"] == 1 and full["image"].shape == (3, 48, 48)
+    truth = decode_image(raw["dof.1.png"])
+    assert np.array_equal(full["target"].numpy().transpose(1, 2, 0), truth)
+    clean = torch.from_numpy(decode_exr(raw["depth.exr"]))
+    assert not torch.equal(full["disparity"][0], clean)  # the input is corrupted ...
+    crop = decode_sample(raw, cfg, sample_rng(0, 3, "train", 0), crop=32)
+    # ... the crop is aligned to 2**levels: it is found at an even offset of the full target
+    t = full["target"]
+    hits = [(y, x) for y in range(0, 17) for x in range(0, 17)
+            if torch.equal(t[:, y:y + 32, x:x + 32], crop["target"])]
+    assert hits and all(y % 2 == 0 and x % 2 == 0 for y, x in hits)
+    with pytest.raises(ValueError, match="target 5"):
+        decode_sample(raw, cfg, sample_rng(0, 0, "train", 0), target=5)
+
+
+def test_random_target_choice_uses_every_target_and_is_seeded(data_dir):
+    cfg = resolve(tiny_config(), data_dir)
+    raw = _raw(data_dir)
+    picks = [decode_sample(raw, cfg, sample_rng(0, e, "train", 0))["target_index"] for e in range(12)]
+    again = [decode_sample(raw, cfg, sample_rng(0, e, "train", 0))["target_index"] for e in range(12)]
+    assert set(picks) == {0, 1} and picks == again
+
+
+def _keys(data_dir, cfg, workers, epoch=0):
+    ds = DofShards(find_shards(data_dir, "train"), cfg, train=True, seed=0, split="train")
+    ds.set_epoch(epoch)
+    loader = torch.utils.data.DataLoader(ds, batch_size=None, num_workers=workers)
+    return [item["key"] for item in loader]
+
+
+@pytest.mark.parametrize("shards_per_split", [4, 12])  # 3 shards, or 1 shard (< workers)
+def test_workers_split_the_data_without_duplicates(tmp_path, shards_per_split):
+    data = make_dataset(tmp_path, n_train=12, n_test=0, size=32, per_shard=shards_per_split)
+    cfg = resolve(tiny_config(), data)
+    keys = _keys(data, cfg, workers=2)
+    assert sorted(keys) == [f"train-{i:07d}" for i in range(12)]
+    assert _keys(data, cfg, workers=0, epoch=1) != _keys(data, cfg, workers=0, epoch=0)  # reshuffled per epoch
+
+
+def test_ranks_split_the_data_without_duplicates(data_dir, monkeypatch):
+    cfg = resolve(tiny_config(), data_dir)
+    seen = []
+    for rank in range(2):
+        monkeypatch.setenv("RANK", str(rank))
+        monkeypatch.setenv("WORLD_SIZE", "2")
+        seen.append(_keys(data_dir, cfg, workers=0))
+    assert not set(seen[0]) & set(seen[1])
+    assert sorted(seen[0] + seen[1]) == [f"train-{i:07d}" for i in range(12)]
+
+
+def test_missing_shards_name_the_folder(tmp_path):
+    with pytest.raises(FileNotFoundError, match="train"):
+        find_shards(tmp_path, "train")
+
+
+def test_area_downsample_is_the_block_mean():
+    x = np.arange(16, dtype=np.float32).reshape(4, 4)
+    assert np.array_equal(area_downsample(x, 2), np.array([[2.5, 4.5], [10.5, 12.5]], np.float32))
+    with pytest.raises(ValueError, match="multiple"):
+        area_downsample(np.zeros((5, 4)), 2)
