@@ -1,0 +1,138 @@
+"""record: what each member holds, byte round trips, determinism, webdataset decoding."""
+import io
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dofsynth.assets import build_library
+from dofsynth.color import highlight_boost, linear_to_srgb, to_uint8
+from dofsynth.compose import scene_layers
+from dofsynth.config import load_recipe
+from dofsynth.io import encode_exr, encode_png
+from dofsynth.planes import Plane
+from dofsynth.record import (PNG_COMPRESSION, RENDERER_ID, SampleDecodeError, boosted_planes, decode_sample,
+                             encode_cover, encode_record, render_sample)
+from dofsynth.render import render_planes
+from dofsynth.aperture import from_dict as aperture_from_dict
+from dofsynth.scene import Scene, sample_scene
+from dofsynth.shards import write_shard
+
+SMOKE = Path(__file__).resolve().parents[1] / "recipes" / "smoke.toml"
+
+
+@pytest.fixture(scope="module")
+def setup():
+    recipe = load_recipe(SMOKE)
+    library = build_library(recipe)
+    scenes = [sample_scene(recipe, library, "train", i) for i in range(3)]
+    return recipe, library, scenes, [render_sample(s, library, recipe) for s in scenes]
+
+
+def test_members_and_record(setup):
+    recipe, _, scenes, samples = setup
+    for scene, m in zip(scenes, samples):
+        n = len(scene.targets)
+        assert list(m) == ["aif.png", "depth.exr", "cover.png"] + [f"dof.{i}.png" for i in range(n)] + ["json"]
+        rec = json.loads(m["json"])
+        assert rec["schema_version"] == 1 and rec["renderer"] == RENDERER_ID and rec["dofsynth_version"] == "0.1.0"
+        assert rec["key"] == scene.key and list(rec) == sorted(rec)
+        assert {k: v for k, v in rec.items() if k not in ("schema_version", "renderer", "dofsynth_version")} == \
+            json.loads(json.dumps(scene.to_dict()))
+
+
+def test_pixels_are_what_the_format_says(setup):
+    recipe, library, scenes, samples = setup
+    scene, m = scenes[0], samples[0]
+    layers = scene_layers(scene, library)
+    d = decode_sample(m)
+    h, w = recipe.frame
+    assert d["aif"].shape == (h, w, 3) and d["depth"].shape == (h, w) and d["cover"].shape == (h, w, 2)
+    assert np.array_equal(to_uint8(d["aif"]), to_uint8(linear_to_srgb(layers.aif)))  # not boosted
+    assert d["depth"].dtype == np.float32 and np.array_equal(d["depth"], layers.disparity)
+    assert np.array_equal(to_uint8(d["cover"]), to_uint8(layers.cover))
+    hl = scene.options.highlight
+    planes = [Plane(highlight_boost(p.rgb, hl.threshold, hl.gain, hl.power), p.alpha, p.disparity)
+              for p in layers.planes] if hl else layers.planes
+    ap = aperture_from_dict(scene.aperture.to_dict())
+    for i, t in enumerate(scene.targets):
+        want = to_uint8(linear_to_srgb(np.clip(render_planes(planes, t.focus, t.max_coc, ap), 0, 1)))
+        assert np.array_equal(to_uint8(d["dof"][i]), want)
+
+
+def test_every_member_round_trips_to_the_same_bytes(setup):
+    for m in setup[3]:
+        d = decode_sample(m)
+        assert encode_png(to_uint8(d["aif"]), PNG_COMPRESSION) == m["aif.png"]
+        assert encode_exr(d["depth"]) == m["depth.exr"]
+        assert encode_cover(d["cover"]) == m["cover.png"]
+        for i, img in enumerate(d["dof"]):
+            assert encode_png(to_uint8(img), PNG_COMPRESSION) == m[f"dof.{i}.png"]
+        assert encode_record(d["record"]) == m["json"]
+
+
+def test_deterministic_and_rerenderable_from_json(setup):
+    recipe, library, scenes, samples = setup
+    again = render_sample(sample_scene(recipe, library, "train", 1), library, recipe)
+    assert again == samples[1]
+    from_json = Scene.from_dict(json.loads(samples[2]["json"]))
+    assert render_sample(from_json, library, recipe) == samples[2]
+
+
+def test_highlight_boost_changes_only_the_dof_targets(setup):
+    recipe, library, scenes, samples = setup
+    scene = scenes[0]
+    plain = render_sample(replace(scene, options=replace(scene.options, highlight=None)), library, recipe)
+    assert plain["aif.png"] == samples[0]["aif.png"] and plain["depth.exr"] == samples[0]["depth.exr"]
+    # a white pixel is boosted, a dark one is not
+    rgb = np.array([[[1.0, 1.0, 1.0], [0.1, 0.1, 0.1]]], np.float32)
+    (p,) = boosted_planes([Plane(rgb, np.ones((1, 2), np.float32), 0.5)], {"threshold": 0.9, "gain": 4.0, "power": 2.0})
+    assert np.allclose(p.rgb[0, 0], 5.0) and np.allclose(p.rgb[0, 1], 0.1)
+
+
+def test_webdataset_reads_every_field(setup, tmp_path):
+    wds = pytest.importorskip("webdataset")
+    from dofsynth.io import decode_exr
+
+    recipe, _, scenes, samples = setup
+    path = tmp_path / "train-000000.tar"
+    write_shard(path, [(s.key, m) for s, m in zip(scenes, samples)])
+    ds = wds.WebDataset(str(path), shardshuffle=False).decode(
+        wds.handle_extension("exr", lambda data: decode_exr(data)), "rgb8")
+    got = list(ds)
+    assert [g["__key__"] for g in got] == [s.key for s in scenes]
+    for g, m in zip(got, samples):
+        d = decode_sample(m)
+        assert np.array_equal(g["aif.png"], to_uint8(d["aif"]))
+        assert np.array_equal(g["cover.png"][:, :, :2], to_uint8(d["cover"])) and not g["cover.png"][:, :, 2].any()
+        assert np.array_equal(g["depth.exr"], d["depth"])
+        for i, img in enumerate(d["dof"]):
+            assert np.array_equal(g[f"dof.{i}.png"], to_uint8(img))
+        assert g["json"] == d["record"]
+    raw = next(iter(wds.WebDataset(str(path), shardshuffle=False)))  # undecoded: decode_sample takes it as is
+    assert decode_sample(raw)["key"] == scenes[0].key
+
+
+def test_decode_errors_name_the_member(setup):
+    m = dict(setup[3][0])
+    key = json.loads(m["json"])["key"]
+    with pytest.raises(SampleDecodeError, match=f"{key}.depth.exr"):
+        decode_sample({k: v for k, v in m.items() if k != "depth.exr"}, key)
+    with pytest.raises(SampleDecodeError, match="numbered 0..N-1"):
+        decode_sample({k: v for k, v in m.items() if k != "dof.0.png"}, key)
+    small = encode_png(np.zeros((8, 8, 3), np.uint8))
+    with pytest.raises(SampleDecodeError, match="aif.png: size"):
+        decode_sample({**m, "aif.png": small}, key)
+    with pytest.raises(SampleDecodeError, match="json: not valid JSON"):
+        decode_sample({**m, "json": b"{"}, key)
+
+
+def test_record_json_is_canonical():
+    a = encode_record({"b": np.float32(0.5), "a": (1, np.int64(2)), "c": np.array([0.25])})
+    assert a == b'{"a":[1,2],"b":0.5,"c":[0.25]}\n'
+    with pytest.raises(ValueError, match="non-finite"):
+        encode_record({"x": float("nan")})
+    with pytest.raises(ValueError, match=r"\(H, W, 2\)"):
+        encode_cover(np.zeros((4, 4, 3)))
