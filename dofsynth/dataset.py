@@ -18,7 +18,8 @@ MANIFEST = MANIFEST_NAME
 READ_ERRORS = (ManifestError, ShardError, SampleDecodeError)
 
 __all__ = ["MANIFEST", "READ_ERRORS", "ShardInfo", "load", "manifest_splits", "manifest_shards",
-           "split_keys", "sample_key", "iter_shard", "iter_samples", "read_samples", "decode_sample", "load_manifest"]
+           "split_keys", "sample_key", "iter_shard", "iter_samples", "read_samples", "decode_sample", "load_manifest",
+           "read_members", "recipe_from_manifest"]
 
 
 def load(out_dir: str | Path) -> dict:
@@ -90,3 +91,17 @@ def read_members(out_dir: str | Path, split: str, key: str) -> dict[str, bytes]:
                     return members
     raise ValueError(f"{out_dir}: split {split!r} has no sample {key}")
 
+
+
+def recipe_from_manifest(manifest: dict, out_dir: str | Path):
+    """The recipe embedded in the manifest, parsed from its stored text as the generator parsed
+    it. Relative asset folders resolve against the recorded recipe's folder when it still
+    exists, else against the data set folder."""
+    from dofsynth.config import recipe_from_text
+
+    rec = manifest.get("recipe")
+    if not isinstance(rec, dict) or not isinstance(rec.get("text"), str):
+        raise ValueError(f"{Path(out_dir) / MANIFEST}: holds no recipe text")
+    path = rec.get("path")
+    base = Path(path).parent if path and Path(path).parent.is_dir() else Path(out_dir)
+    return recipe_from_text(rec["text"], path or f"{Path(out_dir) / MANIFEST} (recipe)", base)

@@ -154,22 +154,24 @@ def check_record_schema(rec) -> list[str]:
 # ---------------------------------------------------------------- pixels
 def expected_background(bg: dict, shape: tuple[int, int]) -> np.ndarray:
     """The background plane's disparity map recomputed from the record's `background` block
-    (compose.background_disparity when the project has it)."""
-    try:
-        from dofsynth.compose import background_disparity  # the generator's own definition
-    except ImportError:
-        background_disparity = None
-    if background_disparity is not None:
-        return np.asarray(background_disparity(bg, shape), dtype=np.float32)
+    with the generator's own `compose.background_disparity` (flat: b0 everywhere; horizontal
+    ramp: b0 at the left column to b1 at the right; vertical: b0 at the bottom row to b1 at
+    the top)."""
+    from dofsynth.compose import background_disparity
+
     h, w = shape
-    b0, b1 = float(bg["b0"]), float(bg["b1"])
-    if bg["mode"] == "flat":   # config.BackgroundRules: a flat background is at infinity
-        return np.zeros(shape, dtype=np.float32)
-    if bg["direction"] == "horizontal":   # b0 at the left edge, b1 at the right edge
-        t = np.linspace(0.0, 1.0, w, dtype=np.float64)[None, :]
-    else:                                 # b0 at the bottom edge, b1 at the top edge
-        t = np.linspace(1.0, 0.0, h, dtype=np.float64)[:, None]
-    return np.broadcast_to(b0 + (b1 - b0) * t, shape).astype(np.float32)
+    return background_disparity(bg["mode"], float(bg["b0"]), float(bg["b1"]), bg.get("direction"), h, w)
+
+
+def _cover_bounds() -> tuple[float, float]:
+    """(clear, opaque): a stored cover <= clear certainly lies below the compositor's coverage
+    threshold and one >= opaque certainly above (8-bit quantisation is 1/510 either way).
+    Without a known threshold: <= 0.01 is absent, >= 0.99 hides what lies behind."""
+    try:
+        from dofsynth.compose import COVER_THRESHOLD
+    except ImportError:
+        return CLEAR, OPAQUE
+    return float(COVER_THRESHOLD) - 0.01, float(COVER_THRESHOLD) + 0.01
 
 
 def check_pixels(sample: dict) -> list[str]:
@@ -192,11 +194,12 @@ def check_pixels(sample: dict) -> list[str]:
         errs.append(f"depth.exr values outside [0, 1]: [{depth.min():.6g}, {depth.max():.6g}]")
     front, middle = sample["cover"][:, :, 0], sample["cover"][:, :, 1]
     f0, f1 = float(rec["front"]["disparity"]), float(rec["middle"]["disparity"])
+    clear, opaque = _cover_bounds()
     regions = [
-        ("opaque front", front >= OPAQUE, np.float32(f0), DEPTH_TOL),
-        ("opaque middle", (front <= CLEAR) & (middle >= OPAQUE), np.float32(f1), DEPTH_TOL),
+        ("front", front >= opaque, np.float32(f0), DEPTH_TOL),
+        ("middle", (front <= clear) & (middle >= opaque), np.float32(f1), DEPTH_TOL),
     ]
-    bare = (front <= CLEAR) & (middle <= CLEAR)
+    bare = (front <= clear) & (middle <= clear)
     bg = expected_background(rec["background"], (h, w))
     regions.append((f"{rec['background']['mode']} background", bare, bg, RAMP_TOL))
     for label, mask, want, tol in regions:
@@ -336,7 +339,10 @@ def _check_sample(key, members, split, where, report, assets) -> None:
             errs.append(f"record split {rec['split']!r} in split {split!r}")
         if f"{split}-{rec['index']:07d}" != key:
             errs.append(f"record index {rec['index']} does not match the key")
-        errs += check_pixels(sample)
+        try:
+            errs += check_pixels(sample)
+        except Exception as exc:  # a record the checks cannot even evaluate is a problem too
+            errs.append(f"pixel checks failed: {type(exc).__name__}: {exc}")
     for e in errs:
         report.add(where, e)
     if isinstance(rec, dict) and isinstance(rec.get("assets"), dict):
@@ -363,7 +369,7 @@ def _deep_check(out_dir, manifest, raw_by_key, n, seed, report) -> None:
 
     try:
         from dofsynth import assets as assets_mod
-        from dofsynth import config, record, scene
+        from dofsynth import record, scene
     except ImportError as exc:
         report.add(ds.MANIFEST, f"--deep needs the generator modules: {exc}")
         return
@@ -371,7 +377,7 @@ def _deep_check(out_dir, manifest, raw_by_key, n, seed, report) -> None:
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     chosen = sorted(rng.choice(len(keys), size=min(n, len(keys)), replace=False).tolist())
     try:
-        recipe = recipe_from_manifest(manifest, out_dir)
+        recipe = ds.recipe_from_manifest(manifest, out_dir)
         library = assets_mod.build_library(recipe)
     except Exception as exc:
         report.add(ds.MANIFEST, f"--deep: cannot rebuild the recipe and asset library: {exc}")
@@ -395,17 +401,3 @@ def _deep_check(out_dir, manifest, raw_by_key, n, seed, report) -> None:
                 report.add(where, f"--deep: re-render adds member {suffix}")
             elif fresh[suffix] != members[suffix]:
                 report.add(where, f"--deep: member {suffix} differs from a re-render of its JSON")
-
-
-def recipe_from_manifest(manifest: dict, out_dir: Path):
-    """The recipe embedded in the manifest (its text, parsed as the generator parsed it)."""
-    from dofsynth import config
-
-    rec = manifest.get("recipe")
-    if not isinstance(rec, dict) or not isinstance(rec.get("text"), str):
-        raise ValueError("manifest.json has no recipe text")
-    path = rec.get("path") or str(out_dir / ds.MANIFEST)
-    base = Path(path).parent if rec.get("path") else out_dir
-    if not base.is_absolute() and not base.exists():
-        base = out_dir
-    return config.recipe_from_text(rec["text"], f"{path} (from {out_dir / ds.MANIFEST})", base)

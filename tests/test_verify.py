@@ -13,99 +13,18 @@ import pytest
 
 from dofsynth import dataset as ds
 from dofsynth.cli import main
-from dofsynth.io import encode_exr, encode_png
+from dofsynth.record import encode_record
 from dofsynth.verify import check_record_schema, verify_dataset
 
-# ---------------------------------------------------------------- a hand-made data set (FORMAT.md)
-H, W = 48, 64
+ROOT = Path(__file__).resolve().parents[1]
 
 
-def _fake_sha(name: str) -> str:
-    return hashlib.sha256(name.encode()).hexdigest()
+def generate_smoke(out: Path) -> Path:
+    """The real smoke data set (recipes/smoke.toml: 64 px, 6 train + 2 test, 2 per shard)."""
+    from dofsynth.config import load_recipe
+    from dofsynth.generate import generate
 
-
-def _record(split, index, rng, assets):
-    mode = ["flat", "ramp"][index % 2]
-    direction = None if mode == "flat" else ["horizontal", "vertical"][(index // 2) % 2]
-    b0, b1 = (0.0, 0.0) if mode == "flat" else sorted(rng.uniform(0, 0.3, 2).round(4).tolist())
-    f1 = round(float(rng.uniform(0.35, 0.6)), 4)
-    f0 = round(float(rng.uniform(0.65, 1.0)), 4)
-    return {
-        "schema_version": 1, "key": f"{split}-{index:07d}", "split": split, "index": index,
-        "seed": [7, 0 if split == "train" else 1, index], "size": [H, W],
-        "assets": {role: {"id": a, "path": f"assets/{a}.png", "sha256": _fake_sha(a)}
-                   for role, a in zip(("background", "front", "middle"), assets)},
-        "background": {"mode": mode, "b0": b0, "b1": b1, "direction": direction,
-                       "crop": [0, 0, W, H], "flip": False},
-        "front": {"disparity": f0, "scale": 0.5, "x": 10 + index, "y": 8, "flip": False},
-        "middle": {"disparity": f1, "scale": 0.6, "x": 30, "y": 14, "flip": True},
-        "targets": [{"focus": f0, "max_coc": 6.0}, {"focus": round(float(rng.uniform(0, 1)), 4), "max_coc": 4.0}],
-        "aperture": {"kind": "disk"}, "options": {"highlight": None},
-        "renderer": "layered-v1", "dofsynth_version": "0.1.0",
-    }
-
-
-def _pixels(rec, rng):
-    y, x = np.mgrid[0:H, 0:W].astype(np.float32)
-    fr, md = rec["front"], rec["middle"]
-    front = np.clip(9.5 - np.hypot(x - fr["x"] - 8, y - fr["y"] - 10), 0, 1)      # a soft-edged disc
-    middle = ((abs(x - md["x"] - 12) < 11) & (abs(y - md["y"] - 12) < 14)).astype(np.float32)
-    bg = rec["background"]
-    if bg["mode"] == "flat":
-        depth = np.full((H, W), bg["b0"], np.float32)
-    elif bg["direction"] == "horizontal":
-        depth = np.broadcast_to(bg["b0"] + (bg["b1"] - bg["b0"]) * np.linspace(0, 1, W)[None], (H, W))
-    else:
-        depth = np.broadcast_to(bg["b0"] + (bg["b1"] - bg["b0"]) * np.linspace(1, 0, H)[:, None], (H, W))
-    depth = np.where(middle > 0.5, np.float32(md["disparity"]), depth)
-    depth = np.where(front > 0.5, np.float32(fr["disparity"]), depth).astype(np.float32)
-    aif = np.clip(rng.uniform(0, 1, (H, W, 3)) * 0.3 + 0.4 * front[..., None] * [1, 0.2, 0.1]
-                  + 0.4 * middle[..., None] * [0.1, 0.8, 0.2], 0, 1)
-    cover = np.stack([front, middle, np.zeros_like(front)], axis=2)
-    dofs = [np.clip(aif * (0.8 + 0.1 * i), 0, 1) for i in range(len(rec["targets"]))]
-    return aif, depth, cover, dofs
-
-
-def _members(rec, rng) -> dict[str, bytes]:
-    aif, depth, cover, dofs = _pixels(rec, rng)
-    m = {"json": json.dumps(rec, sort_keys=True).encode(), "aif.png": encode_png(aif),
-         "depth.exr": encode_exr(depth), "cover.png": encode_png(cover)}
-    m.update({f"dof.{i}.png": encode_png(d) for i, d in enumerate(dofs)})
-    return m
-
-
-def write_fixture_dataset(out: Path, n_train=6, n_test=2, shard_size=2) -> Path:
-    """A data set folder written by hand after docs/FORMAT.md (independent of the generator)."""
-    import webdataset as wds
-
-    rng = np.random.default_rng(1234)
-    out.mkdir(parents=True, exist_ok=True)
-    pools = {"train": (["bg-a", "bg-b"], ["fg-a", "fg-b", "fg-c"], ["mid-a", "mid-b"]),
-             "test": (["bg-t"], ["fg-t"], ["mid-t"])}
-    splits = {}
-    for split, n in (("train", n_train), ("test", n_test)):
-        (out / split).mkdir(exist_ok=True)
-        shards = []
-        for first in range(0, n, shard_size):
-            name = f"{split}/{split}-{first // shard_size:06d}.tar"
-            with wds.TarWriter(str(out / name), mtime=0) as tw:
-                for i in range(first, min(n, first + shard_size)):
-                    pick = [p[i % len(p)] for p in pools[split]]
-                    sample = {"__key__": f"{split}-{i:07d}"}
-                    sample.update(_members(_record(split, i, rng, pick), rng))
-                    tw.write(sample)
-            data = (out / name).read_bytes()
-            shards.append({"name": name.split("/")[1], "path": name, "index": first // shard_size,
-                           "first_index": first, "samples": min(n, first + shard_size) - first,
-                           "sha256": hashlib.sha256(data).hexdigest(), "bytes": len(data)})
-        splits[split] = {"samples": n, "planned_samples": n, "bytes": sum(x["bytes"] for x in shards),
-                         "shards": shards}
-    text = "# fixture\n"
-    manifest = {"schema_version": 1, "dofsynth_version": "0.1.0",
-                "recipe": {"text": text, "sha256": hashlib.sha256(text.encode()).hexdigest(),
-                           "path": "fixture.toml", "name": "fixture"},
-                "splits": splits, "totals": {"samples": n_train + n_test}}
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=2, sort_keys=True))
+    generate(load_recipe(ROOT / "recipes" / "smoke.toml"), out, progress=False)
     return out
 
 
@@ -127,7 +46,7 @@ def rewrite_record(out: Path, split: str, key: str, edit) -> str:
             if info.name == f"{key}.json":
                 rec = json.loads(data)
                 edit(rec)
-                data = json.dumps(rec, sort_keys=True).encode()
+                data = encode_record(rec)
                 info.size = len(data)
             tar.addfile(info, io.BytesIO(data) if data is not None else None)
     path.write_bytes(buf.getvalue())
@@ -159,7 +78,7 @@ def _fix_manifest(out, manifest, name, data):
 # ---------------------------------------------------------------- fixtures
 @pytest.fixture(scope="module")
 def fresh(tmp_path_factory) -> Path:
-    return write_fixture_dataset(tmp_path_factory.mktemp("verify") / "set")
+    return generate_smoke(tmp_path_factory.mktemp("verify") / "set")
 
 
 @pytest.fixture
@@ -179,27 +98,42 @@ def _run(out: Path, capsys, *extra) -> tuple[int, str]:
 
 
 # ---------------------------------------------------------------- tests
+def _records(out: Path) -> list[tuple[str, dict, np.ndarray]]:
+    """(split, record, cover) of every sample."""
+    m = ds.load(out)
+    return [(split, smp["record"], smp["cover"]) for split in ds.manifest_splits(m)
+            for smp in ds.iter_samples(out, split)]
+
+
 def test_fresh_dataset_passes(fresh, capsys):
     report = verify_dataset(fresh)
     assert report.ok, report.lines()
     m = ds.load(fresh)
     n = {s: sum(sh.samples for sh in ds.manifest_shards(m, s)) for s in ds.manifest_splits(m)}
-    assert report.splits == n and report.samples == sum(n.values()) > 0
+    assert report.splits == n == {"train": 6, "test": 2}
+    assert report.samples == 8 and report.shards == 4
     rc, out = _run(fresh, capsys)
-    assert rc == 0 and "OK" in out.splitlines()[-1] and "FAIL" not in out
+    assert rc == 0 and out.splitlines()[-1].endswith("OK") and "FAIL" not in out
+
+
+def test_deep_rerender_matches(fresh, capsys):
+    rc, out = _run(fresh, capsys, "--deep", "--deep-n", "3")
+    assert rc == 0, out
+    assert "3 re-rendered" in out.splitlines()[-1]
 
 
 def test_flipped_byte_is_caught(copy, capsys):
     name = _shard(copy, "train", 1)
     path = copy / name
     data = bytearray(path.read_bytes())
-    data[700] ^= 0x01     # inside the first member's data, past the 512-byte header
+    data[len(data) // 3] ^= 0x01
     path.write_bytes(bytes(data))
     rc, out = _run(copy, capsys)
     assert rc == 1
     fails = [l for l in out.splitlines() if l.startswith("FAIL")]
-    assert any(name in l and "sha256" in l for l in fails), out
+    assert f"FAIL {name}: sha256 differs from the manifest (corrupted or rewritten)" in fails, out
     assert all(name in l for l in fails), out      # nothing else is blamed
+    assert "FAILED" in out.splitlines()[-1]
 
 
 def test_truncated_shard_is_caught(copy, capsys):
@@ -208,8 +142,10 @@ def test_truncated_shard_is_caught(copy, capsys):
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
     rc, out = _run(copy, capsys)
     assert rc == 1
-    assert any(name in l and "size" in l for l in out.splitlines()), out
-    assert any(name in l and "truncated" in l for l in out.splitlines()), out
+    fails = [l for l in out.splitlines() if l.startswith("FAIL")]
+    assert any(name in l and "size" in l for l in fails), out
+    assert any(name in l and "truncated or unreadable" in l for l in fails), out
+    assert all(name in l for l in fails), out
 
 
 def test_missing_and_unlisted_shards_are_caught(copy, capsys):
@@ -217,69 +153,117 @@ def test_missing_and_unlisted_shards_are_caught(copy, capsys):
     (copy / gone).rename(copy / "train" / "train-999999.tar")
     rc, out = _run(copy, capsys)
     assert rc == 1
-    assert any(gone in l and "missing" in l for l in out.splitlines()), out
-    assert any("train/train-999999.tar" in l and "not listed" in l for l in out.splitlines()), out
+    fails = [l for l in out.splitlines() if l.startswith("FAIL")]
+    assert f"FAIL {gone}: missing shard (listed in the manifest)" in fails, out
+    assert any(l.startswith("FAIL train/train-999999.tar:") and "not listed" in l for l in fails), out
+    assert len(fails) == 2, out
+
+
+def test_shard_with_wrong_sample_count_is_caught(copy):
+    # the manifest claims one sample more than the shard holds (hash and size still right)
+    m = json.loads((copy / "manifest.json").read_text())
+    m["splits"]["test"]["shards"][0]["samples"] += 1
+    m["splits"]["test"]["samples"] += 1
+    (copy / "manifest.json").write_text(json.dumps(m))
+    report = verify_dataset(copy)
+    name = _shard(copy, "test", 0)
+    assert [p.where for p in report.problems] == [name], report.lines()
+    assert "holds 2 samples" in report.problems[0].message and "says 3" in report.problems[0].message
 
 
 def test_json_disagreeing_with_disparity_is_caught(copy, capsys):
-    key = "train-0000003"
+    # a sample with certainly-opaque front pixels; move its recorded front plane back a bit
+    split, rec, _ = next(r for r in _records(copy) if (r[2][:, :, 0] >= 0.6).sum() > 20)
+    key = rec["key"]
 
-    def edit(rec):
-        rec["front"]["disparity"] = round(rec["front"]["disparity"] - 0.05, 4)
-    name = rewrite_record(copy, "train", key, edit)
+    def edit(r):
+        r["front"]["disparity"] = r["front"]["disparity"] - 0.05
+    name = rewrite_record(copy, split, key, edit)
     report = verify_dataset(copy)
-    # the hashes were fixed: only the pixel check can see it, and it names shard and key
     assert [p.where for p in report.problems] == [f"{name}: {key}"], report.lines()
-    assert "opaque front" in report.problems[0].message
+    assert "depth disagrees with the record" in report.problems[0].message
+    assert "front pixels" in report.problems[0].message
     rc, out = _run(copy, capsys)
-    assert rc == 1 and f"{name}: {key}" in out
+    assert rc == 1 and f"FAIL {name}: {key}: depth disagrees" in out
 
 
 def test_ramp_with_wrong_direction_is_caught(copy):
-    # sample 1 is a horizontal ramp (see _record): flipping its direction must be noticed
-    def edit(rec):
-        assert rec["background"]["mode"] == "ramp"
-        rec["background"]["direction"] = "vertical" if rec["background"]["direction"] == "horizontal" else "horizontal"
-    name = rewrite_record(copy, "train", "train-0000001", edit)
+    split, rec, cover = next(r for r in _records(copy) if r[1]["background"]["mode"] == "ramp"
+                             and ((r[2] <= 0.4).all(axis=2)).sum() > 100)
+    key = rec["key"]
+
+    def edit(r):
+        bg = r["background"]
+        bg["direction"] = "vertical" if bg["direction"] == "horizontal" else "horizontal"
+    name = rewrite_record(copy, split, key, edit)
     report = verify_dataset(copy)
-    assert not report.ok
-    assert all(p.where == f"{name}: train-0000001" and "background" in p.message for p in report.problems)
+    assert report.problems and all(p.where == f"{name}: {key}" for p in report.problems), report.lines()
+    assert any("ramp background pixels" in p.message for p in report.problems)
 
 
-def test_asset_leaked_across_splits_is_caught(copy, capsys):
-    train_rec = next(ds.iter_samples(copy, "train"))["record"]
-    leaked = train_rec["assets"]["front"]
+def test_deep_catches_a_target_that_was_not_rendered(copy, capsys):
+    # a changed focus leaves every cheap check happy; only re-rendering can notice
+    split, rec, _ = _records(copy)[0]
+    key = rec["key"]
 
-    def edit(rec):
-        rec["assets"]["front"] = dict(leaked)
-    name = rewrite_record(copy, "test", "test-0000001", edit)
+    def edit(r):
+        r["targets"][0]["focus"] = 1.0 - r["targets"][0]["focus"]
+    name = rewrite_record(copy, split, key, edit)
+    assert verify_dataset(copy).ok
+    report = verify_dataset(copy, deep=True, deep_n=100)
+    assert report.deep_checked == 8
+    assert [str(p) for p in report.problems] == [
+        f"{name}: {key}: --deep: member dof.0.png differs from a re-render of its JSON"]
+
+
+def test_asset_leaked_across_splits_is_caught(copy):
+    recs = _records(copy)
+    train0 = next(r for s, r, _ in recs if s == "train")
+    test1 = [r for s, r, _ in recs if s == "test"][-1]
+    leaked = train0["assets"]["front"]
+    assert leaked["id"] != test1["assets"]["front"]["id"]
+
+    def edit(r):
+        r["assets"]["front"] = dict(leaked)
+    name = rewrite_record(copy, "test", test1["key"], edit)
     report = verify_dataset(copy)
     msgs = [str(p) for p in report.problems]
     assert len(msgs) == 2, msgs             # once by id, once by sha256
+    train_shard = _shard(copy, "train", 0)
     for m in msgs:   # both places are named, whichever split the line is filed under
-        assert f"{name}: test-0000001" in m and "train/train-000000.tar: train-0000000" in m, m
+        assert f"{name}: {test1['key']}" in m and f"{train_shard}: {train0['key']}" in m, m
         assert "in both splits" in m
     assert {"id", "sha256"} == {m.split("asset ")[1].split()[0] for m in msgs}
 
 
-def test_schema_errors_are_named():
-    rec = _record("train", 0, np.random.default_rng(0), ["a", "b", "c"])
+def test_schema_errors_are_named(fresh):
+    rec = next(ds.iter_samples(fresh, "train"))["record"]
     assert check_record_schema(rec) == []
     bad = json.loads(json.dumps(rec))
     del bad["targets"][1]["max_coc"]
     bad["front"]["disparity"] = 1.5
-    bad["size"] = [H]
+    bad["size"] = [64]
+    bad["background"]["mode"] = "sky"
     errs = check_record_schema(bad)
     assert "missing key targets[1].max_coc" in errs
     assert any(e.startswith("front.disparity must be a number in [0, 1]") for e in errs)
     assert any(e.startswith("size must be") for e in errs)
+    assert any(e.startswith("background.mode must be") for e in errs)
     bad2 = json.loads(json.dumps(rec))
-    bad2["front"]["disparity"] = float("nan")
-    assert any(e.startswith("front.disparity") for e in check_record_schema(bad2))
+    bad2["middle"]["disparity"] = float("nan")
+    assert any(e.startswith("middle.disparity") for e in check_record_schema(bad2))
+
+
+def test_schema_problem_in_a_shard_is_reported(copy):
+    split, rec, _ = _records(copy)[1]
+    name = rewrite_record(copy, split, rec["key"], lambda r: r.pop("aperture"))
+    report = verify_dataset(copy)
+    assert [str(p) for p in report.problems] == [f"{name}: {rec['key']}: missing key aperture"]
 
 
 def test_missing_manifest_and_folder(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     rc, out = _run(tmp_path / "empty", capsys)
-    assert rc == 1 and "manifest.json" in out
+    assert rc == 1 and "FAIL manifest.json: unreadable manifest" in out
     assert main(["verify", str(tmp_path / "nowhere")]) == 2
+    assert "no such data set folder" in capsys.readouterr().err
