@@ -211,7 +211,9 @@ def render_planes(
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if not (math.isfinite(level_step) and level_step > 0):
         raise ValueError(f"level_step must be a positive number of pixels, got {level_step}")
-    if samples is not None and (int(samples) != samples or samples < 1):
+    if samples is not None and (
+        isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1
+    ):
         raise ValueError(f"samples must be a positive integer or None, got {samples}")
     if method == "exact":
         from dofsynth.exact import render_exact
@@ -227,7 +229,7 @@ def render_planes(
             block, y0, x0 = _blur_constant(pm, float(max_coc) * (d - float(focus)), aperture, backmost)
         else:
             cmap = np.float32(max_coc) * (plane.disparity_map() - np.float32(focus))
-            alpha_one = bool(np.all(pm[3] == 1.0))
+            alpha_one = backmost and bool(np.all(pm[3] == 1.0))  # then alpha == the weight
             block, y0, x0 = _blur_varying(pm, cmap, aperture, backmost, level_step, alpha_one)
         h, w = block.shape[1:]
         if h == 0 or w == 0:

@@ -41,24 +41,31 @@ def direct_convolution(img, k, edge):
     return out
 
 
-@pytest.mark.parametrize("ap,c", [(Disk(), 3.3), (Disk(), -2.0), (Polygon(5, 10.0), -4.1), (Polygon(5, 10.0), 4.1)])
+CASES = [(Disk(), 3.3), (Disk(), -2.0), (Disk(), 7.5), (Polygon(5, 10.0), -4.1), (Polygon(5, 10.0), 4.1),
+         (Polygon(5, 10.0), -8.2)]  # radii up to 5 px go through cv2.filter2D, larger through the FFT
+
+
+@pytest.mark.parametrize("ap,c", CASES)
 def test_constant_plane_is_analytic_convolution(ap, c):
     g = rng(1)
     img = g.random((40, 44, 3), dtype=np.float32)
-    cov = brute_coverage(ap, abs(c))
+    cov = brute_coverage(ap, abs(c))  # 64x64 point samples per pixel: independent of aperture.py
     k = cov / cov.sum()
     if c < 0:
         k = k[::-1, ::-1]
-    focus, max_coc = 0.5, 10.0
-    out = render_planes([opaque(img, focus + c / max_coc)], focus, max_coc, ap)
+    focus, max_coc = 0.5, 20.0
+    d = np.float32(focus + c / max_coc)
+    out = render_planes([opaque(img, d)], focus, max_coc, ap)
     assert out.dtype == np.float32 and out.shape == img.shape
     ref = direct_convolution(img, k, edge=True)
-    assert np.abs(out - ref).max() < 2e-3
+    assert np.abs(out - ref).max() < 3e-4  # measured 3e-5 .. 9e-5: the reference's sampling
+    own = direct_convolution(img, ap.kernel(max_coc * (float(d) - focus)), edge=True)
+    assert np.abs(out - own).max() < 2e-6  # the convolution itself is exact to float32
     # A cutout in front of black: zero outside the frame, premultiplied.
     rgb, a = blob(40, 44, 20, 30, 12, g)
-    out = render_planes([black(40, 44), Plane(rgb, a, focus + c / max_coc)], focus, max_coc, ap)
+    out = render_planes([black(40, 44), Plane(rgb, a, d)], focus, max_coc, ap)
     ref = direct_convolution(rgb * a[:, :, None], k, edge=False)
-    assert np.abs(out - ref).max() < 2e-3
+    assert np.abs(out - ref).max() < 3e-4
 
 
 def test_in_focus_is_identity_and_mean_preserved():
@@ -151,7 +158,9 @@ def test_scatter_conserves_energy():
     d = (0.55 + 0.4 * yy / h).astype(np.float32)  # CoC 0.5 .. 8.5 px across the cutout
     out = render_planes([black(h, w), Plane(rgb, a, d)], 0.5, 20.0)
     src = (rgb * a[:, :, None]).sum(axis=(0, 1))
-    np.testing.assert_allclose(out.sum(axis=(0, 1)), src, rtol=0.01)
+    # The scatter itself conserves light exactly; dividing by the accumulated weight (which keeps
+    # flat areas flat) moves the total by 0.3 % here (CoC gradient 0.11 px per px).
+    np.testing.assert_allclose(out.sum(axis=(0, 1)), src, rtol=5e-3)
 
 
 def test_bad_input_names_the_argument():
