@@ -221,3 +221,17 @@ def test_exact_mode_matches_layered_unless_both_blurred():
     assert np.abs(ex - lay).mean() < 2e-3 and np.abs(ex - lay).max() < 0.01
     # In focus, the exact mode is the identity too.
     np.testing.assert_allclose(render_planes([opaque(bg, 0.3)], 0.3, 12.0, method="exact"), bg, atol=1e-6)
+
+
+def test_opaque_front_plane_with_varying_disparity_lets_the_border_through():
+    """A full-frame opaque plane that is not the backmost is zero outside the frame: blurred, its
+    border turns semi-transparent and shows the (in-focus) plane behind, as in the exact mode."""
+    g = rng(8)
+    h, w = 48, 48
+    front = smooth_image(h, w, g)
+    ramp = np.tile(np.linspace(0.3, 0.5, w, dtype=np.float32), (h, 1))  # CoC 3 .. 5 px
+    planes = [opaque(np.ones((h, w, 3), np.float32), 0.0), opaque(front, ramp)]
+    lay = render_planes(planes, 0.0, 10.0)
+    ex = render_planes(planes, 0.0, 10.0, method="exact")
+    assert lay[:, 0].mean() > front[:, 0].mean() + 0.1  # white shows through at the left border
+    assert np.abs(ex - lay).max() < 0.02 and np.abs(ex - lay).mean() < 2e-3
