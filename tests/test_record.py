@@ -13,8 +13,8 @@ from dofsynth.compose import scene_layers
 from dofsynth.config import load_recipe
 from dofsynth.io import encode_exr, encode_png
 from dofsynth.planes import Plane
-from dofsynth.record import (PNG_COMPRESSION, RENDERER_ID, SampleDecodeError, boosted_planes, decode_sample,
-                             encode_cover, encode_record, render_sample)
+from dofsynth.record import (RENDERER_ID, SampleDecodeError, boosted_planes, decode_sample, encode_cover,
+                             encode_png8, encode_record, render_sample)
 from dofsynth.render import render_planes
 from dofsynth.aperture import from_dict as aperture_from_dict
 from dofsynth.scene import Scene, sample_scene
@@ -65,11 +65,11 @@ def test_pixels_are_what_the_format_says(setup):
 def test_every_member_round_trips_to_the_same_bytes(setup):
     for m in setup[3]:
         d = decode_sample(m)
-        assert encode_png(to_uint8(d["aif"]), PNG_COMPRESSION) == m["aif.png"]
+        assert encode_png8(to_uint8(d["aif"])) == m["aif.png"]
         assert encode_exr(d["depth"]) == m["depth.exr"]
         assert encode_cover(d["cover"]) == m["cover.png"]
         for i, img in enumerate(d["dof"]):
-            assert encode_png(to_uint8(img), PNG_COMPRESSION) == m[f"dof.{i}.png"]
+            assert encode_png8(to_uint8(img)) == m[f"dof.{i}.png"]
         assert encode_record(d["record"]) == m["json"]
 
 
