@@ -1,0 +1,184 @@
+"""Contact sheets and the HTML page, checked on their pixels against a real smoke data set."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from dofsynth import dataset as ds
+from dofsynth import sheets
+from dofsynth.cli import main
+from dofsynth.io import decode_image, read_image
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory) -> Path:
+    from dofsynth.config import load_recipe
+    from dofsynth.generate import generate
+
+    out = tmp_path_factory.mktemp("sheets") / "set"
+    generate(load_recipe(ROOT / "recipes" / "smoke.toml"), out, progress=False)
+    return out
+
+
+@pytest.fixture(scope="module")
+def sheet4(smoke, tmp_path_factory):
+    """A 4-row sheet of the train split: (image, layout, samples)."""
+    path = sheets.write_sheet(smoke, split="train", n=4, seed=5, path=tmp_path_factory.mktemp("s") / "s.png")
+    img = np.round(read_image(path) * 255).astype(np.uint8)
+    keys = sheets.choose_keys(ds.load(smoke), "train", 4, 5)
+    samples = ds.read_samples(smoke, "train", keys)
+    lay = sheets.sheet_layout(4, 2, (64, 64), 192)
+    return img, lay, samples
+
+
+def _crop(img, box):
+    x, y, w, h = box
+    return img[y:y + h, x:x + w]
+
+
+def _ink(region) -> int:
+    """Pixels that differ from the sheet background."""
+    return int(np.any(region != np.uint8(sheets.BG), axis=-1).sum())
+
+
+def test_sheet_size_follows_the_layout(sheet4):
+    img, lay, _ = sheet4
+    assert lay.thumb_h == 192 and lay.thumb_w == 192      # 64x64 samples, 192 px tiles
+    assert img.shape == (lay.header_h + 4 * lay.row_h, lay.width, 3) == (lay.height, lay.width, 3)
+    assert lay.columns[3:] == ["DoF target 0", "DoF target 1"]
+
+
+def test_tiles_show_the_sample_pixels(sheet4):
+    img, lay, samples = sheet4
+    for row, s in enumerate(samples):
+        aif = _crop(img, lay.tile(row, 0)).astype(int)
+        want = sheets.resize(sheets.to_u8(s["aif"]), 192, 192).astype(int)
+        assert np.abs(aif - want).max() <= 1 and aif.std() > 5
+        for i, dof in enumerate(s["dof"]):
+            tile = _crop(img, lay.tile(row, 3 + i)).astype(int)
+            assert np.abs(tile - sheets.resize(sheets.to_u8(dof), 192, 192).astype(int)).max() <= 1
+
+
+def test_disparity_tile_follows_the_colour_map(sheet4):
+    img, lay, samples = sheet4
+    lut = sheets.colormap_lut().astype(int)
+    ref = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[None], cv2.COLORMAP_TURBO)[0, :, ::-1]
+    np.testing.assert_array_equal(lut, ref)           # OpenCV's TURBO, in RGB order
+    assert lut[255, 0] > 2 * lut[255, 2] and lut[0, 2] > lut[0, 0]   # near red, far blue-violet
+    for row, s in enumerate(samples):
+        tile = _crop(img, lay.tile(row, 1)).astype(int)
+        # each pixel is the colour-map entry of the (nearest) disparity under it
+        ys = (np.arange(192) * 64) // 192
+        d = s["depth"][np.ix_(ys, ys)]
+        want = lut[np.floor(np.clip(d, 0, 1) * 255 + 0.5).astype(int)]
+        assert np.abs(tile - want).max() <= 1
+        # the scale bar runs from the colour of 1 at the top to the colour of 0 at the bottom
+        bar = _crop(img, lay.bar(row)).astype(int)
+        assert np.abs(bar[0, 5] - lut[255]).max() <= 1 and np.abs(bar[-1, 5] - lut[0]).max() <= 1
+        mid = bar[bar.shape[0] // 2, 5]
+        assert np.abs(lut - mid).max(axis=1).min() <= 1
+        # the tick labels right of the bar are drawn
+        x, y, w, h = lay.bar(row)
+        assert _ink(img[y:y + h, x + w + 4:x + w + lay.tick_w]) > 30
+
+
+def test_coverage_tile_tints_front_red_and_middle_green(sheet4):
+    img, lay, samples = sheet4
+    seen_front = seen_middle = False
+    for row, s in enumerate(samples):
+        tile = _crop(img, lay.tile(row, 2)).astype(int)
+        cov = sheets.resize(s["cover"].astype(np.float32), 192, 192)
+        front = cov[:, :, 0] > 0.95
+        middle = (cov[:, :, 1] > 0.95) & (cov[:, :, 0] < 0.05)
+        if front.sum() > 50:
+            seen_front = True
+            assert np.median(tile[front][:, 0] - tile[front][:, 1]) > 40   # red over green
+        if middle.sum() > 50:
+            seen_middle = True
+            assert np.median(tile[middle][:, 1] - tile[middle][:, 0]) > 40  # green over red
+    assert seen_front and seen_middle
+
+
+def test_labels_header_and_captions_have_text(sheet4):
+    img, lay, samples = sheet4
+    assert all(_ink(img[20:lay.header_h, x:x + w]) > 40 for x, w in zip(lay.column_x, lay.column_widths))
+    for row in range(4):
+        assert _ink(_crop(img, lay.caption(row))) > 100
+        for col in range(len(lay.columns)):
+            assert _ink(_crop(img, lay.label(row, col))) > 30
+        # nothing is drawn in the gaps between tiles (labels never spill over)
+        x, y, w, h = lay.tile(row, 0)
+        gap_x = lay.column_x[2] + lay.column_widths[2]
+        assert _ink(img[y:y + h + lay.label_h, gap_x + 1:gap_x + lay.pad - 1]) == 0
+    labels = sheets.tile_labels(samples[0])
+    t = samples[0]["record"]["targets"]
+    assert labels[3] == f"focus {t[0]['focus']:.2f}  max CoC {t[0]['max_coc']:.1f}px"
+
+
+def test_sample_choice_is_deterministic(smoke):
+    m = ds.load(smoke)
+    a = sheets.choose_keys(m, "train", 3, 1)
+    assert a == sheets.choose_keys(m, "train", 3, 1) and a == sorted(a) and len(set(a)) == 3
+    assert len({tuple(sheets.choose_keys(m, "train", 3, s)) for s in range(6)}) > 1
+    assert sheets.choose_keys(m, "test", 24, 0) == ["test-0000000", "test-0000001"]
+    with pytest.raises(ValueError, match="split 'valid'"):
+        sheets.choose_keys(m, "valid", 3, 0)
+
+
+def test_default_path_and_cli(smoke, tmp_path, capsys):
+    p = sheets.write_sheet(smoke)                     # the test split, into the data set folder
+    assert p == smoke / "sheet-test.png"
+    lay = sheets.sheet_layout(2, 2, (64, 64), 192)
+    assert read_image(p).shape == (lay.height, lay.width, 3)
+    p.unlink()
+    out = tmp_path / "cli.png"
+    assert main(["sheet", str(smoke), "--split", "train", "--n", "2", "--thumb", "96", "--out", str(out)]) == 0
+    assert capsys.readouterr().out.strip() == str(out)
+    lay = sheets.sheet_layout(2, 2, (64, 64), 96)
+    assert read_image(out).shape == (lay.header_h + 2 * lay.row_h, lay.width, 3)
+    assert main(["sheet", str(smoke), "--n", "0"]) == 2
+    assert main(["sheet", str(tmp_path / "nowhere")]) == 2
+
+
+def test_html_page_links_full_size_images_and_sweeps(smoke, tmp_path):
+    page = sheets.write_html(smoke, tmp_path / "html", split="train", n=3, seed=2, sweep=1, sweep_steps=4)
+    text = page.read_text()
+    keys = sheets.choose_keys(ds.load(smoke), "train", 3, 2)
+    links = re.findall(r'href="(img/[^"]+)"', text)
+    assert links and all((page.parent / l).is_file() for l in links)
+    for key in keys:
+        members = ds.read_members(smoke, "train", key)
+        # the full-size images are the shard's own bytes
+        assert (page.parent / "img" / f"{key}.aif.png").read_bytes() == members["aif.png"]
+        assert (page.parent / "img" / f"{key}.dof.1.png").read_bytes() == members["dof.1.png"]
+        assert f'href="img/{key}.aif.png"' in text and f'href="img/{key}.dof.0.png"' in text
+        disp = read_image(page.parent / "img" / f"{key}.disparity.png")
+        assert disp.shape == (64, 64, 3)
+    sweep = sorted((page.parent / "img").glob("*.sweep.*.png"))
+    assert [p.name for p in sweep] == [f"{keys[0]}.sweep.{i}.png" for i in range(4)]
+    frames = [read_image(p) for p in sweep]
+    assert all(f.shape == (64, 64, 3) for f in frames)
+    assert max(np.abs(frames[0] - f).max() for f in frames[1:]) > 0.05   # focus changes the image
+    assert "focus 0.00" in text and "focus 1.00" in text
+
+
+def test_focus_sweep_at_a_target_focus_is_that_target(smoke):
+    """Re-rendering a record at its own target's focus gives the stored DoF image exactly."""
+    from dofsynth.assets import build_library
+
+    m = ds.load(smoke)
+    recipe = ds.recipe_from_manifest(m, smoke)
+    library = build_library(recipe)
+    key = ds.split_keys(m, "test")[1]
+    members = ds.read_members(smoke, "test", key)
+    s = ds.decode_sample(members, key)
+    t0 = s["record"]["targets"][0]
+    frames = sheets.focus_sweep(s["record"], library, recipe, [t0["focus"], 0.0])
+    want = np.round(decode_image(members["dof.0.png"]) * 255).astype(np.uint8)
+    np.testing.assert_array_equal(frames[0], want)
