@@ -6,7 +6,16 @@ import pytest
 from dofsynth.aperture import Disk, Polygon, support_radius
 from dofsynth.planes import Plane
 from dofsynth.render import render_planes
-from tests.test_aperture import brute_coverage
+
+
+def brute_coverage(aperture, radius, sub=64):
+    """Independent reference kernel: point-in-shape tests on sub x sub points per pixel."""
+    s = support_radius(radius)
+    n = 2 * s + 1
+    t = (np.arange(n * sub) + 0.5) / sub - s - 0.5
+    yy, xx = np.meshgrid(t, t, indexing="ij")
+    inside = aperture.contains(xx / radius, yy / radius).astype(np.float64)
+    return inside.reshape(n, sub, n, sub).sum(axis=(1, 3)) / sub**2
 
 
 def rng(seed):
