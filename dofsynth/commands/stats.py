@@ -1,0 +1,40 @@
+"""`dofsynth stats OUT`: histograms and counts of a data set, as a chart and as JSON."""
+from __future__ import annotations
+
+import argparse
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "stats",
+        help="chart (and JSON) of a data set's parameter, CoC, coverage and asset statistics",
+        description=(
+            "Per split: histograms of the target focus, the plane disparities f0 and f1, the ramp "
+            "ends b0 and b1, the CoC radius |max_coc * (disparity - focus)| over all pixels of all "
+            "targets, and the foreground coverages (share of pixels with alpha > 0.5); counts of "
+            "background modes, ramp directions and asset usage. Writes a PNG of bar charts and, "
+            "with --json, the same numbers (bin edges and counts)."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("out", help="the data set folder (holds manifest.json)")
+    p.add_argument("--out", dest="path", default=None, metavar="PNG",
+                   help="where to write the chart (default: OUT/stats.png)")
+    p.add_argument("--json", default=None, metavar="FILE", help="also write the numbers as JSON")
+    p.add_argument("--split", action="append", default=None,
+                   help="only this split (repeatable; default: every split)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from dofsynth.stats import write_stats
+
+    png, js, stats = write_stats(args.out, path=args.path, json_path=args.json, splits=args.split)
+    for split, st in stats["splits"].items():
+        h = st["histograms"]
+        print(f"{split}: {st['samples']} samples, {h['focus']['total']} targets, "
+              f"{h['coc']['total']} target pixels; backgrounds {st['counts']['background_mode']}")
+    print(png)
+    if js:
+        print(js)
+    return 0
