@@ -64,7 +64,8 @@ def register(subparsers) -> None:
     p.add_argument("--aperture", default="disk", metavar="SHAPE",
                    help="disk (default), polygon:N or polygon:N:ROTATION_DEGREES (circumradius = CoC)")
     p.add_argument("--highlight", action="store_true",
-                   help="boost near-white pixels to brighter-than-white before blurring (bokeh discs)")
+                   help="boost near-white pixels to brighter-than-white before blurring, so highlights "
+                        "become bright bokeh discs (dofsynth.color.highlight_boost; not with --model)")
     p.add_argument("--method", choices=("layered", "exact"), default="layered",
                    help="layered (fast, default) or exact (aperture sampling; slow, for small images)")
     p.add_argument("--model", metavar="RUN", default=None,
@@ -135,14 +136,14 @@ def run(args) -> int:
     focus = focus_at(disparity, *args.focus_at) if args.focus_at else args.focus
     if not 0.0 <= focus <= 1.0:
         raise ValueError(f"--focus must be a disparity in [0, 1], got {focus}")
-    if args.highlight:
-        rgb = highlight_boost(rgb)
     if args.model is not None:  # hook: a trained network renders instead (dofsynth.train.infer)
         from dofsynth.train.infer import render_photo
 
         result = render_photo(run_dir=args.model, image_linear=rgb, disparity=disparity,
                               focus=focus, aperture=args.aperture_scale)
     else:
+        if args.highlight:
+            rgb = highlight_boost(rgb)
         plane = Plane(rgb, np.ones(disparity.shape, np.float32), disparity)
         with scipy.fft.set_workers(os.cpu_count() or 1):
             result = render_planes([plane], focus, args.max_coc, aperture, method=args.method)
