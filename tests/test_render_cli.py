@@ -121,3 +121,6 @@ def test_model_hook(tmp_path, monkeypatch):
     assert rc == 0
     assert seen == {"run_dir": "runs/r1", "shape": (h, w, 3), "dshape": (h, w), "focus": 0.3, "ap": 0.7}
     np.testing.assert_allclose(read_exr(out, channels=None), 0.25)
+    rc = main(["render", str(PHOTO), "--depth", str(tmp_path / "d.exr"), "--focus", "0.3", "--model", "runs/r1",
+               "--aperture-scale", "1.5", "--out", str(out)])
+    assert rc == 2

@@ -71,7 +71,8 @@ def register(subparsers) -> None:
     p.add_argument("--model", metavar="RUN", default=None,
                    help="render with a trained network from training run folder RUN instead")
     p.add_argument("--aperture-scale", type=_nonneg, default=1.0, metavar="S",
-                   help="with --model: the network's aperture (blur strength) control (default 1.0)")
+                   help="with --model: blur strength as a fraction r*/r_max of the largest the network "
+                        "learned, in (0, 1] (default 1.0)")
     p.set_defaults(func=run)
 
 
@@ -130,6 +131,8 @@ def run(args) -> int:
     if out.suffix.lower() not in (".png", ".exr"):
         raise ValueError(f"--out {out}: must end in .png or .exr")
     aperture = parse_aperture(args.aperture)
+    if args.model is not None and not 0.0 < args.aperture_scale <= 1.0:
+        raise ValueError(f"--aperture-scale must lie in (0, 1], got {args.aperture_scale}")
     if args.model is None and args.max_coc is None:
         raise ValueError("--max-coc is required (unless --model renders with a network)")
     rgb, disparity = _read_inputs(args)
