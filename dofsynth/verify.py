@@ -42,6 +42,7 @@ class Problem:
 class Report:
     out_dir: Path
     problems: list[Problem] = field(default_factory=list)
+    notes: list[Problem] = field(default_factory=list)   # worth knowing, not failures
     shards: int = 0
     samples: int = 0
     deep_checked: int = 0
@@ -62,7 +63,7 @@ class Report:
                 f"{state}")
 
     def lines(self) -> list[str]:
-        return [f"FAIL {p}" for p in self.problems] + [self.summary()]
+        return [f"NOTE {p}" for p in self.notes] + [f"FAIL {p}" for p in self.problems] + [self.summary()]
 
 
 # ---------------------------------------------------------------- schema
@@ -249,15 +250,48 @@ def _unlisted_shards(out_dir: Path, listed: set[str], report: Report) -> None:
             report.add(rel, "shard not listed in the manifest (left over from another run?)")
 
 
+def _run_state(out_dir: Path, report: Report) -> None:
+    """A live generator lock is a failure (the folder is changing under us); leftovers of a
+    killed run (stale lock, progress file, temporary shards) are notes."""
+    import fcntl
+    import os
+
+    lock = out_dir / ".lock"
+    if lock.is_file():
+        fd = os.open(lock, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
+            report.add(".lock", f"a dofsynth run (pid {holder}) is writing into this folder; "
+                                "verify again when it has finished")
+        else:
+            report.notes.append(Problem(".lock", "stale lock file of a finished or killed run"))
+        finally:
+            os.close(fd)
+    if (out_dir / ".progress.jsonl").is_file():
+        report.notes.append(Problem(".progress.jsonl", "progress file of an unfinished run "
+                                    "(`dofsynth generate --resume` finishes it)"))
+    for p in sorted(out_dir.rglob("*.tmp*")):
+        if p.is_file():
+            report.notes.append(Problem(p.relative_to(out_dir).as_posix(), "temporary file left by a killed run"))
+
+
 # ---------------------------------------------------------------- driver
 def verify_dataset(out_dir: str | Path, deep: bool = False, deep_n: int = 8, seed: int = 0,
-                   progress=None) -> Report:
+                   recipe_path: str | Path | None = None, progress=None) -> Report:
     """Check everything described in the module docstring; never raises for data problems
-    (they go into the returned report), only for a missing folder."""
+    (they go into the returned report), only for a missing folder.
+
+    `deep`: re-render `deep_n` records chosen with `seed`. The recipe is the manifest's own
+    text; `recipe_path` gives a recipe file instead (it must have the manifest's sha256), for
+    asset folders given relative to a recipe that was moved. `progress(k)` is called as samples
+    are checked."""
     out_dir = Path(out_dir)
     if not out_dir.is_dir():
         raise FileNotFoundError(f"{out_dir}: no such data set folder")
     report = Report(out_dir)
+    _run_state(out_dir, report)
     try:
         manifest = ds.load(out_dir)
         splits = ds.manifest_splits(manifest)
@@ -303,7 +337,7 @@ def verify_dataset(out_dir: str | Path, deep: bool = False, deep_n: int = 8, see
     _check_totals(manifest, shards, report)
     _check_leaks(assets, report)
     if deep and raw_by_key:
-        _deep_check(out_dir, manifest, raw_by_key, deep_n, seed, report)
+        _deep_check(out_dir, manifest, raw_by_key, deep_n, seed, report, recipe_path)
     return report
 
 
@@ -363,7 +397,7 @@ def _check_leaks(assets: dict[str, dict], report: Report) -> None:
                            f"at {assets[a][(kind, value)]}")
 
 
-def _deep_check(out_dir, manifest, raw_by_key, n, seed, report) -> None:
+def _deep_check(out_dir, manifest, raw_by_key, n, seed, report, recipe_path=None) -> None:
     """Re-render `n` records chosen with `seed` from their JSON and compare member bytes."""
     import json
 
@@ -377,7 +411,16 @@ def _deep_check(out_dir, manifest, raw_by_key, n, seed, report) -> None:
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     chosen = sorted(rng.choice(len(keys), size=min(n, len(keys)), replace=False).tolist())
     try:
-        recipe = ds.recipe_from_manifest(manifest, out_dir)
+        if recipe_path is not None:
+            from dofsynth.config import load_recipe
+
+            recipe = load_recipe(recipe_path)
+            if recipe.sha256 != manifest["recipe"].get("sha256"):
+                report.add(str(recipe_path), "--recipe: not the recipe this data set was made from "
+                                             "(its sha256 differs from the manifest's)")
+                return
+        else:
+            recipe = ds.recipe_from_manifest(manifest, out_dir)
         library = assets_mod.build_library(recipe)
     except Exception as exc:
         report.add(ds.MANIFEST, f"--deep: cannot rebuild the recipe and asset library: {exc}")

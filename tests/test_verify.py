@@ -4,6 +4,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
 import shutil
 import tarfile
 from pathlib import Path
@@ -267,3 +268,25 @@ def test_missing_manifest_and_folder(tmp_path, capsys):
     assert rc == 1 and "FAIL manifest.json: unreadable manifest" in out
     assert main(["verify", str(tmp_path / "nowhere")]) == 2
     assert "no such data set folder" in capsys.readouterr().err
+
+
+def test_run_in_progress_fails_and_leftovers_are_noted(copy, capsys):
+    from dofsynth.generate import OutputLock
+
+    with OutputLock(copy):
+        report = verify_dataset(copy)
+        assert [p.where for p in report.problems] == [".lock"]
+        assert f"pid {os.getpid()}" in report.problems[0].message
+    (copy / "train" / ".train-000009.tar.tmp-123").write_bytes(b"half a shard")
+    rc, out = _run(copy, capsys)
+    assert rc == 0, out                                   # leftovers are notes, not failures
+    assert "NOTE train/.train-000009.tar.tmp-123: temporary file left by a killed run" in out
+
+
+def test_deep_with_recipe_file(fresh, tmp_path, capsys):
+    rc, out = _run(fresh, capsys, "--deep", "--deep-n", "1", "--recipe", str(ROOT / "recipes" / "smoke.toml"))
+    assert rc == 0 and "1 re-rendered" in out, out
+    other = tmp_path / "other.toml"
+    other.write_text((ROOT / "recipes" / "smoke.toml").read_text().replace("seed = 7", "seed = 8"))
+    rc, out = _run(fresh, capsys, "--deep", "--recipe", str(other))
+    assert rc == 1 and f"FAIL {other}: --recipe: not the recipe this data set was made from" in out

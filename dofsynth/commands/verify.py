@@ -24,6 +24,9 @@ def register(subparsers) -> None:
     p.add_argument("--deep-n", type=int, default=8, metavar="N",
                    help="how many records --deep re-renders")
     p.add_argument("--seed", type=int, default=0, help="picks the records --deep re-renders")
+    p.add_argument("--recipe", default=None, metavar="TOML",
+                   help="for --deep: use this recipe file (same sha256 as the manifest's) instead of "
+                        "the manifest's copy, e.g. when its relative asset folders moved")
     p.set_defaults(func=run)
 
 
@@ -32,7 +35,11 @@ def run(args) -> int:
 
     if args.deep_n < 1:
         raise ValueError(f"--deep-n must be >= 1, got {args.deep_n}")
-    report = verify_dataset(args.out, deep=args.deep, deep_n=args.deep_n, seed=args.seed)
+    from tqdm import tqdm
+
+    with tqdm(desc="verify", unit="sample", disable=None, leave=False) as bar:
+        report = verify_dataset(args.out, deep=args.deep, deep_n=args.deep_n, seed=args.seed,
+                                recipe_path=args.recipe, progress=bar.update)
     for line in report.lines():
         print(line)
     sys.stdout.flush()
