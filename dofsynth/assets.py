@@ -59,7 +59,8 @@ class Asset:
 
 
 # --------------------------------------------------------------------------------- decoding
-def _sha(data: bytes) -> str:
+def file_sha256(data: bytes) -> str:
+    """sha256 hex digest of bytes."""
     return hashlib.sha256(data).hexdigest()
 
 
@@ -75,7 +76,7 @@ def _decode(data: bytes, path: str) -> np.ndarray:
         raise AssetError(f"{path}: not a readable image ({exc})") from exc
 
 
-def _header(path: str) -> tuple[int, int, int]:
+def image_header(path: str) -> tuple[int, int, int]:
     """(w, h, channels) from the file header only."""
     import OpenImageIO as oiio
 
@@ -187,18 +188,19 @@ class _Scanner:
 
     def read(self, p: Path) -> bytes:
         data = p.read_bytes()
-        self.out.hashes[str(p)] = _sha(data)
+        self.out.hashes[str(p)] = file_sha256(data)
         return data
 
-    def probe(self, p: Path, data: bytes) -> tuple[tuple[int, int], np.ndarray | None, int]:
+    def probe(self, p: Path, data: bytes, check_size: bool = True) -> tuple[tuple[int, int], np.ndarray | None, int]:
         """(w, h), decoded image or None (header mode), channels."""
         if self.decode:
             img = _decode(data, str(p))
             h, w, c = img.shape
         else:
             img = None
-            w, h, c = _header(str(p))
-        _check_size(str(p), w, h)
+            w, h, c = image_header(str(p))
+        if check_size:
+            _check_size(str(p), w, h)
         return (w, h), img, c
 
     def background(self, root: Path, p: Path) -> None:
@@ -231,7 +233,7 @@ class _Scanner:
             data = self.read(p)
             size, _, _ = self.probe(p, data)
             adata = self.read(a)
-            asize, aimg, _ = self.probe(a, adata)
+            asize, aimg, _ = self.probe(a, adata, check_size=False)
             if asize != size:
                 raise AssetError(f"{a}: alpha is {asize[0]}x{asize[1]} but its foreground {p} is "
                                  f"{size[0]}x{size[1]}")
@@ -319,7 +321,7 @@ def _check_pins(manifests: tuple[str, ...], scan: _Scan, used: list[Asset]) -> d
             if not fp.is_file():
                 problems.append(f"{p}: missing (pinned by {m})")
                 continue
-            sha = scan.hashes.get(p) or _sha(fp.read_bytes())
+            sha = scan.hashes.get(p) or file_sha256(fp.read_bytes())
             if sha != e.get("sha256") or fp.stat().st_size != e.get("bytes", fp.stat().st_size):
                 problems.append(f"{p}: changed since pinned by {m} (sha256 {sha[:12]}..., pinned "
                                 f"{str(e.get('sha256'))[:12]}...)")
@@ -338,13 +340,21 @@ def _uniform(seed: int, asset_id: str) -> float:
 
 
 def assign_splits(assets: list[Asset], seed: int, test_share: float, need: dict[str, int]) -> dict[str, str]:
-    """{asset id: split}. An asset is in test when its sha-based uniform (from id and seed) is below
-    `test_share`. If a split that must hold samples gets fewer than `need[split]` assets, the
-    assets nearest the threshold move over (deterministic; only happens for tiny sets)."""
-    order = sorted(assets, key=lambda a: (_uniform(seed, a.id), a.id))
-    n_test = sum(1 for a in order if _uniform(seed, a.id) < test_share)
+    """{asset id: split}. An asset is in test when a sha256-based uniform of (seed, id) is below
+    `test_share`. Byte-identical files (same sha256) share the split of the smallest id among
+    them, so a duplicate never leaks across. If a split that must hold samples gets fewer than
+    `need[split]` assets, the assets nearest the threshold move over (deterministic; only
+    happens for tiny sets)."""
+    rep: dict[str, str] = {}
+    for a in sorted(assets, key=lambda a: a.id):
+        rep.setdefault(a.sha256, a.id)
+    u = {a.id: _uniform(seed, rep[a.sha256]) for a in assets}
+    order = sorted(assets, key=lambda a: (u[a.id], rep[a.sha256], a.id))
+    n_test = sum(1 for a in order if u[a.id] < test_share)
     n_test = max(n_test, min(need.get("test", 0), len(order)))
     n_test = min(n_test, max(0, len(order) - need.get("train", 0)))
+    while 0 < n_test < len(order) and order[n_test].sha256 == order[n_test - 1].sha256:
+        n_test += 1  # never cut a group of duplicates
     return {a.id: ("test" if i < n_test else "train") for i, a in enumerate(order)}
 
 
@@ -391,7 +401,7 @@ class AssetLibrary:
             data = Path(path).read_bytes()
         except OSError as exc:
             raise AssetError(f"{path}: cannot read ({exc.strerror or exc})") from exc
-        if sha is not None and _sha(data) != sha:
+        if sha is not None and file_sha256(data) != sha:
             raise AssetError(f"{path}: changed since the asset library was built (sha256 differs)")
         return data
 

@@ -248,6 +248,32 @@ def _bounds(lo, hi, lo_open=False, what="") -> str:
     return ""
 
 
+# every table and its keys; unknown keys are reported before anything else (a typo would
+# otherwise surface as a "missing key" elsewhere)
+_KEYS: dict[str, tuple[str, ...]] = {
+    "": ("name", "seed", "size", "aspect", "shard_size", "samples", "assets", "scene", "focus", "render"),
+    "samples": ("train", "test"),
+    "assets": ("backgrounds", "foregrounds", "manifest", "on_bad_asset", "test_share", "verify"),
+    "scene": ("background", "foreground"),
+    "scene.background": ("flat_share", "b0", "b1", "vertical_share", "crop"),
+    "scene.foreground": ("f0", "f1", "min_gap", "scale", "min_in_frame", "flip_share"),
+    "focus": ("targets_per_scene", "plane_share", "max_coc"),
+    "render": ("linear_light", "aperture", "highlight"),
+    "render.aperture": ("kind", "blades", "rotation"),
+    "render.highlight": ("enabled", "threshold", "gain", "power"),
+}
+
+
+def _check_keys(data: dict, prefix: str, file: str) -> None:
+    known = _KEYS[prefix]
+    for key in sorted(data):
+        dotted = f"{prefix}.{key}" if prefix else key
+        if key not in known:
+            raise RecipeError(f"{file}: {dotted}: unknown key (known here: {', '.join(known)})")
+        if dotted in _KEYS and isinstance(data[key], dict):
+            _check_keys(data[key], dotted, file)
+
+
 def _asset_source(t: _Table, key: str, base_dir: Path) -> str:
     v = t.str(key)
     if v == BUILTIN:
@@ -264,6 +290,7 @@ def recipe_from_text(text: str, path_for_messages: str | os.PathLike, base_dir: 
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise RecipeError(f"{file}: not valid TOML ({exc})") from exc
+    _check_keys(data, "", file)
     top = _Table(data, "", file)
     name = top.str("name")
     seed = top.int("seed", lo=0, hi=2**63 - 1)

@@ -1,0 +1,132 @@
+"""`dofsynth assets`: pin asset folders in a manifest (`scan`) and check a recipe's assets (`check`)."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from dofsynth.assets import (MANIFEST_SCHEMA, AssetError, file_sha256, image_files, image_header,
+                             is_paired_layout, read_sources_licences)
+from dofsynth.io import atomic_write_bytes
+
+KIND_CHOICES = ("background", "foreground")
+
+
+def _kind_of(rel: str, paired_root: bool, forced: str | None, channels: int) -> str:
+    parts = rel.split("/")
+    if "alpha" in parts[:-1]:
+        return "alpha"
+    if forced:
+        return forced
+    if paired_root and parts[0] == "fg":
+        return "foreground"
+    if paired_root and parts[0] in ("bg", "background", "backgrounds"):
+        return "background"
+    return "foreground" if channels in (2, 4) else "background"
+
+
+def scan_folder(root: Path, out_dir: Path, kind: str | None = None, licence: str | None = None,
+                progress: bool = True) -> dict:
+    """The manifest of every image under `root` (sorted): path relative to root, sha256, bytes,
+    width, height, channels, kind, licence. `root` is written relative to `out_dir`."""
+    from tqdm import tqdm
+
+    root = root.resolve()
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such asset folder")
+    lic = read_sources_licences(root)
+    for sub in sorted(p for p in root.iterdir() if p.is_dir()):
+        for k, v in read_sources_licences(sub).items():
+            lic.setdefault(k, v)
+    paired = is_paired_layout(root) or (root / "fg").is_dir()
+    files, skipped = [], []
+    for p in tqdm(image_files(root), desc=f"scan {root.name}", unit="file", disable=not progress,
+                  file=sys.stderr):
+        rel = p.relative_to(root).as_posix()
+        data = p.read_bytes()
+        try:
+            w, h, c = image_header(str(p))
+        except AssetError as exc:
+            skipped.append({"path": rel, "reason": str(exc)})
+            print(f"dofsynth assets scan: warning: skipping {exc}", file=sys.stderr)
+            continue
+        files.append({
+            "path": rel, "sha256": file_sha256(data), "bytes": len(data), "width": w, "height": h,
+            "channels": c, "kind": _kind_of(rel, paired, kind, c),
+            "licence": lic.get(str(p), licence or "unknown"),
+        })
+    return {"schema_version": MANIFEST_SCHEMA,
+            "root": Path(os.path.relpath(root, out_dir.resolve())).as_posix(),
+            "files": files, "skipped": skipped}
+
+
+def run_scan(args: argparse.Namespace) -> int:
+    out = Path(args.output)
+    manifest = scan_folder(Path(args.dir), out.parent if str(out.parent) else Path("."), args.kind,
+                           args.licence, progress=not args.quiet)
+    text = json.dumps(manifest, indent=1, sort_keys=True) + "\n"
+    atomic_write_bytes(out, text.encode("utf-8"))
+    kinds: dict[str, int] = {}
+    for f in manifest["files"]:
+        kinds[f["kind"]] = kinds.get(f["kind"], 0) + 1
+    summary = ", ".join(f"{n} {k}" for k, n in sorted(kinds.items())) or "no images"
+    print(f"{out}: pinned {len(manifest['files'])} files ({summary}); skipped {len(manifest['skipped'])}")
+    return 0
+
+
+def run_check(args: argparse.Namespace) -> int:
+    from dofsynth.assets import build_library
+    from dofsynth.config import load_recipe
+
+    recipe = load_recipe(args.recipe)
+    lib = build_library(recipe)
+    for split in ("train", "test"):
+        print(f"{split:5s}  {len(lib.assets_for('background', split)):6d} backgrounds  "
+              f"{len(lib.assets_for('foreground', split)):6d} foregrounds")
+    for path, reason in lib.skipped:
+        print(f"skipped  {reason if reason.startswith(path) else path + ': ' + reason}")
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    args.parser.print_help()
+    return 2
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "assets", help="pin asset folders in a manifest; check a recipe's assets",
+        description="Work with the photos and cutouts that scenes are made from. `scan` pins a folder "
+                    "(every file's sha256, size and licence) in a JSON manifest that a recipe can name "
+                    "under [assets] manifest, so a later build refuses changed or missing files. "
+                    "`check` builds a recipe's asset library and prints the split sizes and skipped files.")
+    p.set_defaults(func=run, parser=p)
+    sub = p.add_subparsers(dest="assets_command", metavar="SUBCOMMAND")
+
+    s = sub.add_parser(
+        "scan", help="write a pinning manifest of an asset folder",
+        description="Scan DIR recursively (sorted; PNG, JPEG, TIFF, WebP, EXR) and write a manifest: "
+                    "schema_version, root (relative to the manifest's folder) and per file its path "
+                    "relative to DIR, sha256, bytes, width, height, channels, kind (background, "
+                    "foreground or alpha) and licence. Licences come from a SOURCES.md table (columns "
+                    "`file` and `licence`) in DIR, its parent or its subfolders, else from --licence, "
+                    "else 'unknown'. Unreadable files are listed under `skipped` with a warning.",
+        epilog="Example: dofsynth assets scan recipes/assets -o data_manifest/sources/deeplens.json")
+    s.add_argument("dir", metavar="DIR", help="the asset folder to pin")
+    s.add_argument("-o", "--output", required=True, metavar="OUT.json", help="the manifest file to write")
+    s.add_argument("--kind", choices=KIND_CHOICES, default=None,
+                   help="the kind of every file (files under an alpha/ folder stay 'alpha'); default: "
+                        "fg/ = foreground, bg/ = background, else by alpha channel")
+    s.add_argument("--licence", default=None, metavar="TEXT",
+                   help="licence of files that no SOURCES.md table lists (default 'unknown')")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=run_scan)
+
+    c = sub.add_parser(
+        "check", help="build a recipe's asset library and report it",
+        description="Scan and check the recipe's assets as `generate` would (pins included) and print "
+                    "how many backgrounds and foregrounds each split has and which files were skipped.")
+    c.add_argument("recipe", metavar="RECIPE.toml", help="the recipe")
+    c.set_defaults(func=run_check)

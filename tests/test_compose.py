@@ -1,0 +1,138 @@
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from dofsynth.assets import build_library
+from dofsynth.compose import background_disparity, place_foreground, resize, scene_layers
+from dofsynth.config import load_recipe
+from dofsynth.planes import validate_planes
+from dofsynth.scene import ObjectParams, placed_size, sample_scene
+
+
+
+def test_horizontal_ramp_runs_from_b0_left_to_b1_right():
+    d = background_disparity("ramp", 0.4, 0.1, "horizontal", 5, 7)
+    assert d.dtype == np.float32 and d.shape == (5, 7)
+    assert np.allclose(d[:, 0], 0.4) and np.allclose(d[:, -1], 0.1)
+    assert (np.diff(d, axis=1) < 0).all() and (np.diff(d, axis=0) == 0).all()
+
+
+def test_vertical_ramp_runs_from_b0_bottom_to_b1_top():
+    d = background_disparity("ramp", 0.4, 0.1, "vertical", 6, 3)
+    assert np.allclose(d[-1], 0.4) and np.allclose(d[0], 0.1)
+    assert (np.diff(d, axis=0) > 0).all()          # rows go top -> bottom: disparity grows
+    assert (np.diff(d, axis=1) == 0).all()
+
+
+def test_flat_background_and_bad_modes():
+    assert (background_disparity("flat", 0.0, 0.0, None, 4, 4) == 0).all()
+    with pytest.raises(ValueError, match="mode"):
+        background_disparity("tilt", 0.4, 0.1, "horizontal", 4, 4)
+    with pytest.raises(ValueError, match="direction"):
+        background_disparity("ramp", 0.4, 0.1, "diagonal", 4, 4)
+
+
+@pytest.fixture(scope="module")
+def layers_of(smoke_recipe, smoke_library):
+    return [(s, scene_layers(s, smoke_library))
+            for s in (sample_scene(smoke_recipe, smoke_library, sp, i)
+                      for sp, n in (("train", 6), ("test", 2)) for i in range(n))]
+
+
+def test_layers_shapes_and_renderer_contract(layers_of):
+    for s, L in layers_of:
+        H, W = s.size
+        assert [p.rgb.shape for p in L.planes] == [(H, W, 3)] * 3
+        assert L.aif.shape == (H, W, 3) and L.disparity.shape == (H, W) and L.cover.shape == (H, W, 2)
+        assert all(a.dtype == np.float32 for a in (L.aif, L.disparity, L.cover))
+        assert (L.planes[0].alpha == 1).all()
+        assert L.planes[1].disparity == s.middle.disparity and L.planes[2].disparity == s.front.disparity
+        for t in s.targets:
+            validate_planes(L.planes, t.focus, t.max_coc)
+
+
+def test_planes_are_in_front_of_what_they_cover(layers_of):
+    for s, L in layers_of:
+        bg = L.planes[0].disparity_map()
+        mid, front = L.planes[1], L.planes[2]
+        assert mid.alpha.any() and front.alpha.any()
+        assert bg[mid.alpha > 0].max() < mid.disparity < front.disparity
+        assert bg[front.alpha > 0].max() < front.disparity
+
+
+def test_aif_disparity_and_cover_follow_the_planes(layers_of):
+    for s, L in layers_of:
+        bg, mid, front = L.planes
+        ref = bg.rgb
+        for p in (mid, front):
+            ref = p.rgb * p.alpha[..., None] + ref * (1 - p.alpha[..., None])
+        assert np.allclose(L.aif, ref, atol=1e-6)
+        want = np.where(front.alpha >= 0.5, front.disparity,
+                        np.where(mid.alpha >= 0.5, mid.disparity, bg.disparity_map()))
+        assert np.array_equal(L.disparity, want.astype(np.float32))
+        assert np.array_equal(L.cover[..., 0], front.alpha) and np.array_equal(L.cover[..., 1], mid.alpha)
+
+
+def test_objects_are_zero_outside_their_placed_rectangle(layers_of, smoke_library):
+    for s, L in layers_of:
+        for p, params, role in ((L.planes[1], s.middle, "middle"), (L.planes[2], s.front, "front")):
+            _, _, ew, eh = smoke_library[s.assets[role].id].extent
+            w, h = placed_size(params.scale, ew, eh)
+            mask = np.zeros(s.size, bool)
+            mask[max(params.y, 0):max(params.y + h, 0), max(params.x, 0):max(params.x + w, 0)] = True
+            assert (p.alpha[~mask] == 0).all() and (p.rgb[~mask] == 0).all()
+
+
+def test_resampling_is_premultiplied_no_fringe_from_the_transparent_surround():
+    h, w = 90, 90
+    rgb = np.zeros((h, w, 3), np.float32)
+    rgb[..., 1] = 1.0                       # bright green where alpha = 0
+    alpha = np.zeros((h, w), np.float32)
+    alpha[20:70, 25:65] = 1.0
+    rgb[alpha > 0] = (1.0, 0.0, 0.0)        # red object
+    for scale in (0.37, 1.7):
+        params = ObjectParams(disparity=0.9, scale=scale, x=3, y=4, flip=False)
+        prgb, pa = place_foreground(rgb, alpha, (20, 15, 50, 60), params, 160, 160)
+        edge = (pa > 0) & (pa < 1)
+        assert edge.any()
+        assert np.abs(prgb[pa > 0][:, 1]).max() < 1e-5     # no green leaked in
+        assert np.allclose(prgb[pa > 0][:, 0], 1.0, atol=1e-4)
+
+
+def test_identity_placement_and_flip():
+    rng = np.random.default_rng(0)
+    rgb = rng.random((40, 50, 3)).astype(np.float32)
+    alpha = np.clip(rng.random((40, 50)) * 1.5, 0, 1).astype(np.float32)
+    p = ObjectParams(disparity=0.9, scale=1.0, x=5, y=6, flip=False)
+    prgb, pa = place_foreground(rgb, alpha, (0, 0, 50, 40), p, 60, 70)
+    assert np.allclose(pa[6:46, 5:55], alpha)
+    on = alpha > 1e-3
+    assert np.allclose(prgb[6:46, 5:55][on], rgb[on], atol=1e-4)
+    _, fa = place_foreground(rgb, alpha, (0, 0, 50, 40), replace(p, flip=True), 60, 70)
+    assert np.allclose(fa[6:46, 5:55], alpha[:, ::-1])
+    # partly outside the frame: clipped, not wrapped
+    _, ca = place_foreground(rgb, alpha, (0, 0, 50, 40), replace(p, x=-10, y=-20), 60, 70)
+    assert np.allclose(ca[:20, :40], alpha[20:, 10:]) and (ca[20:] == 0).all()
+
+
+def test_resize_uses_area_when_shrinking():
+    img = np.zeros((8, 8), np.float32)
+    img[::2, ::2] = 1.0
+    assert np.allclose(resize(img, 4, 4), 0.25)   # area average, not point sampling
+
+
+def test_compose_with_real_cutouts(write_recipe, shared_assets):
+    recipe = load_recipe(write_recipe(backgrounds=shared_assets / "bg", foregrounds=shared_assets, size=96))
+    lib = build_library(recipe)
+    s = sample_scene(recipe, lib, "train", 1)
+    L = scene_layers(s, lib)
+    assert L.aif.shape == (96, 96, 3) and np.isfinite(L.aif).all() and L.aif.min() >= 0
+    assert ((L.cover > 0) & (L.cover < 1)).any()       # real mattes keep fractional edges
+
+
+def test_a_changed_asset_is_refused(layers_of, smoke_library):
+    s, _ = layers_of[0]
+    bad = replace(s, assets={**s.assets, "front": replace(s.assets["front"], sha256="0" * 64)})
+    with pytest.raises(ValueError, match="front asset .* changed"):
+        scene_layers(bad, smoke_library)
