@@ -107,9 +107,11 @@ def test_continuous_in_max_coc_and_focus(ap):
     for lo, hi in ((2.9, 3.1), (0.45, 0.55)):
         outs = [render_planes(planes, 0.5, r / 0.3, ap) for r in np.linspace(lo, hi, 101)]
         steps = [np.abs(b - a).max() for a, b in zip(outs, outs[1:])]
-        assert max(steps) < 0.01, (lo, hi, max(steps))
+        # Equal steps in, near-equal changes out: a jump would stand far above the median.
+        assert max(steps) < 0.005 and max(steps) < 2 * np.median(steps), (lo, hi, max(steps))
     outs = [render_planes(planes, f, 10.0, ap) for f in np.linspace(0.49, 0.51, 21)]
-    assert max(np.abs(b - a).max() for a, b in zip(outs, outs[1:])) < 0.01
+    steps = [np.abs(b - a).max() for a, b in zip(outs, outs[1:])]
+    assert max(steps) < 0.01 and max(steps) < 2 * np.median(steps)
 
 
 def test_nearly_constant_map_equals_constant_plane():
