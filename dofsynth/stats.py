@@ -272,11 +272,11 @@ def render_stats(stats: dict) -> np.ndarray:
     return img
 
 
-def write_stats(out_dir, path=None, json_path=None, splits=None) -> tuple[Path, Path | None, dict]:
+def write_stats(out_dir, path=None, json_path=None, splits=None, progress=None) -> tuple[Path, Path | None, dict]:
     """Compute the statistics, write the chart PNG (default `OUT/stats.png`) and, if asked,
     the JSON. Returns (png path, json path or None, stats)."""
     out_dir = Path(out_dir)
-    stats = compute_stats(out_dir, splits)
+    stats = compute_stats(out_dir, splits, progress)
     png = Path(path) if path is not None else out_dir / "stats.png"
     atomic_write_bytes(png, encode_png(render_stats(stats)))
     jp = None

@@ -29,7 +29,11 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from dofsynth.stats import write_stats
 
-    png, js, stats = write_stats(args.out, path=args.path, json_path=args.json, splits=args.split)
+    from tqdm import tqdm
+
+    with tqdm(desc="stats", unit="sample", disable=None, leave=False) as bar:
+        png, js, stats = write_stats(args.out, path=args.path, json_path=args.json, splits=args.split,
+                                     progress=bar.update)
     for split, st in stats["splits"].items():
         h = st["histograms"]
         print(f"{split}: {st['samples']} samples, {h['focus']['total']} targets, "
