@@ -1,8 +1,6 @@
 """`dofsynth sheet OUT`: a contact sheet (PNG) and optionally a static HTML page of a data set."""
 from __future__ import annotations
 
-import argparse
-
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -16,19 +14,18 @@ def register(subparsers) -> None:
             "With --html, also write a static page whose images open at full resolution, with a "
             "focus sweep (scenes re-rendered from their JSON at several focus values)."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("out", help="the data set folder (holds manifest.json)")
-    p.add_argument("--split", default="test", help="which split to show")
-    p.add_argument("--n", type=int, default=24, help="how many samples (rows)")
-    p.add_argument("--seed", type=int, default=0, help="picks the samples")
+    p.add_argument("--split", default="test", help="which split to show (default: test)")
+    p.add_argument("--n", type=int, default=24, help="how many samples, one row each (default: 24)")
+    p.add_argument("--seed", type=int, default=0, help="picks the samples; the same seed shows the same ones (default: 0)")
     p.add_argument("--out", dest="path", default=None, metavar="PNG",
                    help="where to write the sheet (default: OUT/sheet-SPLIT.png)")
-    p.add_argument("--thumb", type=int, default=192, help="tile height in pixels")
+    p.add_argument("--thumb", type=int, default=192, help="tile height in pixels (default: 192)")
     p.add_argument("--html", default=None, metavar="DIR",
                    help="also write DIR/index.html with full-size images and focus sweeps")
-    p.add_argument("--sweep", type=int, default=3, help="how many samples get a focus sweep in --html")
-    p.add_argument("--sweep-steps", type=int, default=7, help="focus values per sweep (0 to 1)")
+    p.add_argument("--sweep", type=int, default=3, help="how many samples get a focus sweep in --html (default: 3)")
+    p.add_argument("--sweep-steps", type=int, default=7, help="focus values per sweep, from 0 to 1 (default: 7)")
     p.set_defaults(func=run)
 
 

@@ -1,8 +1,6 @@
 """`dofsynth stats OUT`: histograms and counts of a data set, as a chart and as JSON."""
 from __future__ import annotations
 
-import argparse
-
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -15,7 +13,6 @@ def register(subparsers) -> None:
             "background modes, ramp directions and asset usage. Writes a PNG of bar charts and, "
             "with --json, the same numbers (bin edges and counts)."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("out", help="the data set folder (holds manifest.json)")
     p.add_argument("--out", dest="path", default=None, metavar="PNG",

@@ -16,14 +16,13 @@ def register(subparsers) -> None:
             "disparities, and that no asset is shared between splits. Prints one line per problem "
             "(shard and key) and a summary; exit status 1 if anything is wrong."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("out", help="the data set folder (holds manifest.json)")
     p.add_argument("--deep", action="store_true",
                    help="also re-render a sample of records from their JSON and compare the bytes")
     p.add_argument("--deep-n", type=int, default=8, metavar="N",
-                   help="how many records --deep re-renders")
-    p.add_argument("--seed", type=int, default=0, help="picks the records --deep re-renders")
+                   help="how many records --deep re-renders (default: 8)")
+    p.add_argument("--seed", type=int, default=0, help="picks the records --deep re-renders (default: 0)")
     p.add_argument("--recipe", default=None, metavar="TOML",
                    help="for --deep: use this recipe file (same sha256 as the manifest's) instead of "
                         "the manifest's copy, e.g. when its relative asset folders moved")
