@@ -158,11 +158,13 @@ def _init_worker(recipe, q) -> None:
     _library_for(recipe)
 
 
-def _worker_shard(out: str, split: str, shard_index: int, limit: int | None) -> tuple[ShardInfo, float]:
+def _worker_shard(out: str, split: str, shard_index: int, limit: int | None) -> tuple[ShardInfo, float, float]:
+    """Pool task: (ShardInfo, seconds spent on the shard, this worker's peak MiB so far)."""
     q = _WORKER["queue"]
+    t0 = time.perf_counter()
     info = generate_shard(_WORKER["recipe"], out, split, shard_index, limit=limit,
                           on_sample=(lambda n: q.put(n)) if q is not None else None)
-    return info, peak_rss_mb()
+    return info, time.perf_counter() - t0, peak_rss_mb()
 
 
 # ------------------------------------------------------------------------------ the lock
@@ -235,10 +237,16 @@ class GenerateResult:
     bytes: int = 0
     skipped_assets: list = field(default_factory=list)
     peak_rss_mb: float = 0.0     # largest worker (or this process) peak resident memory
+    shard_seconds: float = 0.0   # time spent inside generate_shard, summed over workers
 
     @property
     def samples_per_second(self) -> float:
         return self.generated_samples / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def seconds_per_sample_per_worker(self) -> float:
+        """Steady-state cost of one sample on one worker (no start-up, no library build)."""
+        return self.shard_seconds / self.generated_samples if self.generated_samples else 0.0
 
     def summary_lines(self) -> list[str]:
         kept = f", {self.kept_shards} kept from before" if self.kept_shards else ""
@@ -246,7 +254,8 @@ class GenerateResult:
             f"dofsynth generate: {self.out}",
             f"  samples  {self.samples} in {self.shards} shards ({self.generated_samples} rendered "
             f"in {self.generated_shards} shards{kept})",
-            f"  time     {self.seconds:.1f} s, {self.samples_per_second:.2f} samples/s",
+            f"  time     {self.seconds:.1f} s, {self.samples_per_second:.2f} samples/s "
+            f"({self.seconds_per_sample_per_worker:.3f} s per sample per worker)",
             f"  size     {self.bytes / 1e6:.1f} MB",
             f"  skipped  {len(self.skipped_assets)} assets" + (
                 ": " + ", ".join(str(a) for a in self.skipped_assets[:5]) if self.skipped_assets else ""),
@@ -383,17 +392,20 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
 
             bar = tqdm(total=total, initial=total - sum(t.samples for t in todo), unit="sample",
                        desc=f"generate {out.name}", dynamic_ncols=True, smoothing=0.1)
-        peak = peak_rss_mb()
+        peak, busy = peak_rss_mb(), 0.0
         try:
             if workers == 1 or len(todo) <= 1:
                 for t in todo:
+                    ts = time.perf_counter()
                     info = generate_shard(recipe, out, t.split, t.index, limit=limits[t.split], library=library,
                                           on_sample=bar.update if bar else None)
+                    busy += time.perf_counter() - ts
                     done[t.split].append(info)
                     append_progress(out, info)
                 peak = max(peak, peak_rss_mb())
             elif todo:
-                peak = max(peak, _run_pool(recipe, out, todo, limits, min(workers, len(todo)), done, bar))
+                rss, busy = _run_pool(recipe, out, todo, limits, min(workers, len(todo)), done, bar)
+                peak = max(peak, rss)
         finally:
             if bar is not None:
                 bar.close()
@@ -410,17 +422,18 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
         out=out, manifest=manifest, samples=manifest["totals"]["samples"], shards=manifest["totals"]["shards"],
         generated_samples=sum(t.samples for t in todo), generated_shards=len(todo), kept_shards=kept,
         removed=removed, seconds=time.perf_counter() - t0, bytes=manifest["totals"]["bytes"],
-        skipped_assets=skipped, peak_rss_mb=peak)
+        skipped_assets=skipped, peak_rss_mb=peak, shard_seconds=busy)
     if progress:
         print("\n".join(result.summary_lines()), flush=True)
     return result
 
 
-def _run_pool(recipe, out: Path, todo: list[ShardTask], limits, workers: int, done, bar) -> float:
-    """Render `todo` in a spawn process pool; records each finished shard; returns peak MiB."""
+def _run_pool(recipe, out: Path, todo: list[ShardTask], limits, workers: int, done, bar) -> tuple[float, float]:
+    """Render `todo` in a spawn process pool and record each finished shard.
+    Returns (largest worker peak MiB, seconds spent in shards summed over workers)."""
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    peak = 0.0
+    peak, busy = 0.0, 0.0
     ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(recipe, q))
     try:
         futures = {ex.submit(_worker_shard, str(out), t.split, t.index, limits[t.split]): t for t in todo}
@@ -431,12 +444,12 @@ def _run_pool(recipe, out: Path, todo: list[ShardTask], limits, workers: int, do
             for f in finished:
                 t = futures[f]
                 try:
-                    info, rss = f.result()
+                    info, seconds, rss = f.result()
                 except Exception as exc:
                     if isinstance(exc, (ValueError, FileNotFoundError)):
                         raise ValueError(f"shard {t.path}: {exc}") from exc
                     raise RuntimeError(f"shard {t.path} failed: {exc!r}") from exc
-                peak = max(peak, rss)
+                peak, busy = max(peak, rss), busy + seconds
                 done[t.split].append(info)
                 append_progress(out, info)
     except BaseException:
@@ -444,10 +457,10 @@ def _run_pool(recipe, out: Path, todo: list[ShardTask], limits, workers: int, do
         raise
     ex.shutdown(wait=True)
     _drain(q, bar)
-    if bar is not None:
+    if bar is not None and bar.n != bar.total:
         bar.n = bar.total
         bar.refresh()
-    return peak
+    return peak, busy
 
 
 def _drain(q, bar) -> None:
