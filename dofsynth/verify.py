@@ -303,7 +303,8 @@ def verify_dataset(out_dir: str | Path, deep: bool = False, deep_n: int = 8, see
     listed = {sh.path for s in splits for sh in shards[s]}
     _unlisted_shards(out_dir, listed, report)
     assets: dict[str, dict[tuple[str, str], str]] = {}   # split -> (kind, value) -> first place
-    raw_by_key: dict[str, tuple[str, dict]] = {}         # for --deep
+    raw_by_key: dict[str, tuple[str, dict]] = {}         # the members of the --deep picks only
+    deep_keys = _deep_picks(shards, deep_n, seed) if deep else set()
     for split in splits:
         assets[split] = {}
         report.splits[split] = 0
@@ -322,7 +323,7 @@ def verify_dataset(out_dir: str | Path, deep: bool = False, deep_n: int = 8, see
                     seen.append(key)
                     where = f"{sh.path}: {key}"
                     _check_sample(key, members, split, where, report, assets[split])
-                    if deep:
+                    if key in deep_keys:
                         raw_by_key[key] = (sh.path, members)
                     if progress:
                         progress(1)
@@ -337,7 +338,7 @@ def verify_dataset(out_dir: str | Path, deep: bool = False, deep_n: int = 8, see
     _check_totals(manifest, shards, report)
     _check_leaks(assets, report)
     if deep and raw_by_key:
-        _deep_check(out_dir, manifest, raw_by_key, deep_n, seed, report, recipe_path)
+        _deep_check(out_dir, manifest, raw_by_key, report, recipe_path)
     return report
 
 
@@ -397,8 +398,17 @@ def _check_leaks(assets: dict[str, dict], report: Report) -> None:
                            f"at {assets[a][(kind, value)]}")
 
 
-def _deep_check(out_dir, manifest, raw_by_key, n, seed, report, recipe_path=None) -> None:
-    """Re-render `n` records chosen with `seed` from their JSON and compare member bytes."""
+def _deep_picks(shards: dict[str, list], n: int, seed: int) -> set[str]:
+    """`n` keys of the whole data set (all splits) chosen with `seed`, from the manifest."""
+    keys = sorted(k for infos in shards.values() for sh in infos for k in sh.keys())
+    if not keys:
+        return set()
+    rng = np.random.default_rng(np.random.SeedSequence(seed))
+    return {keys[i] for i in rng.choice(len(keys), size=min(n, len(keys)), replace=False).tolist()}
+
+
+def _deep_check(out_dir, manifest, raw_by_key, report, recipe_path=None) -> None:
+    """Re-render the picked records (`raw_by_key`) from their JSON and compare member bytes."""
     import json
 
     try:
@@ -407,9 +417,6 @@ def _deep_check(out_dir, manifest, raw_by_key, n, seed, report, recipe_path=None
     except ImportError as exc:
         report.add(ds.MANIFEST, f"--deep needs the generator modules: {exc}")
         return
-    keys = sorted(raw_by_key)
-    rng = np.random.default_rng(np.random.SeedSequence(seed))
-    chosen = sorted(rng.choice(len(keys), size=min(n, len(keys)), replace=False).tolist())
     try:
         if recipe_path is not None:
             from dofsynth.config import load_recipe
@@ -425,8 +432,7 @@ def _deep_check(out_dir, manifest, raw_by_key, n, seed, report, recipe_path=None
     except Exception as exc:
         report.add(ds.MANIFEST, f"--deep: cannot rebuild the recipe and asset library: {exc}")
         return
-    for j in chosen:
-        key = keys[j]
+    for key in sorted(raw_by_key):
         shard, members = raw_by_key[key]
         where = f"{shard}: {key}"
         try:
