@@ -290,3 +290,18 @@ def test_deep_with_recipe_file(fresh, tmp_path, capsys):
     other.write_text((ROOT / "recipes" / "smoke.toml").read_text().replace("seed = 7", "seed = 8"))
     rc, out = _run(fresh, capsys, "--deep", "--recipe", str(other))
     assert rc == 1 and f"FAIL {other}: --recipe: not the recipe this data set was made from" in out
+
+
+def test_same_content_under_another_id_is_a_leak(copy):
+    recs = _records(copy)
+    train0 = next(r for s, r, _ in recs if s == "train")
+    test0 = next(r for s, r, _ in recs if s == "test")
+    sha = train0["assets"]["background"]["sha256"]
+
+    def edit(r):   # a renamed copy of a training background
+        r["assets"]["background"]["sha256"] = sha
+    name = rewrite_record(copy, "test", test0["key"], edit)
+    report = verify_dataset(copy)
+    assert len(report.problems) == 1, report.lines()
+    msg = str(report.problems[0])
+    assert f"asset sha256 {sha[:16]} is in both splits" in msg and f"{name}: {test0['key']}" in msg
