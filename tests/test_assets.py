@@ -272,3 +272,23 @@ def test_manifest_pin_refuses_changed_missing_and_new_files(write_recipe, tmp_pa
 def test_missing_asset_folder_names_it(write_recipe, tmp_path):
     with pytest.raises(FileNotFoundError, match="nothere"):
         build_library(load_recipe(write_recipe(backgrounds="nothere")))
+
+
+def test_tiff_webp_and_exr_assets(write_recipe, tmp_path, tiny_cutouts):
+    import OpenEXR
+
+    d = tmp_path / "mixed"
+    d.mkdir()
+    img = noise_rgb(70, 90, 7)
+    assert cv2.imwrite(str(d / "t.tif"), img[:, :, ::-1])
+    assert cv2.imwrite(str(d / "w.webp"), img[:, :, ::-1], [cv2.IMWRITE_WEBP_QUALITY, 101])
+    lin = np.random.default_rng(1).random((66, 80, 3)).astype(np.float32)
+    chans = {c: np.ascontiguousarray(lin[:, :, i]) for i, c in enumerate("RGB")}
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, chans).write(str(d / "e.exr"))
+    for verify in ("decode", "header"):
+        lib = build_library(load_recipe(write_recipe(backgrounds=d, foregrounds=tiny_cutouts, verify=verify)))
+        assert [a.id for a in lib.backgrounds] == ["bg/e", "bg/t", "bg/w"]
+        assert lib["bg/e"].size == (80, 66)
+        assert np.array_equal(lib.load_background(lib["bg/e"]), lin)   # EXR is linear already
+        t, w = lib.load_background(lib["bg/t"]), lib.load_background(lib["bg/w"])
+        assert np.array_equal(t, w)                                     # lossless WebP == TIFF
