@@ -19,7 +19,7 @@ READ_ERRORS = (ManifestError, ShardError, SampleDecodeError)
 
 __all__ = ["MANIFEST", "READ_ERRORS", "ShardInfo", "load", "manifest_splits", "manifest_shards",
            "split_keys", "sample_key", "iter_shard", "iter_samples", "read_samples", "decode_sample", "load_manifest",
-           "read_members", "recipe_from_manifest"]
+           "read_members", "read_members_many", "recipe_from_manifest"]
 
 
 def load(out_dir: str | Path) -> dict:
@@ -63,34 +63,46 @@ def iter_samples(out_dir: str | Path, split: str, decode: bool = True) -> Iterat
             yield decode_sample(members, key) if decode else {"key": key, "members": members}
 
 
-def read_samples(out_dir: str | Path, split: str, keys: list[str]) -> list[dict]:
-    """Decode the samples with the given keys (returned in the order given), opening only the
-    shards that hold them."""
+def read_members_many(out_dir: str | Path, split: str, keys) -> dict[str, dict[str, bytes]]:
+    """{key: {suffix: bytes}} for the given keys of `split`. Opens only the shards that hold
+    them and reads only their members (tar headers of the others are skipped, not read), so a
+    few samples of a large data set come quickly."""
+    import tarfile
+
     out_dir = Path(out_dir)
     wanted = set(keys)
-    found: dict[str, dict] = {}
+    found: dict[str, dict[str, bytes]] = {}
     for sh in manifest_shards(load(out_dir), split):
-        if not wanted & set(sh.keys()):
+        here = wanted & set(sh.keys())
+        if not here:
             continue
-        for key, members in read_shard(out_dir / sh.path):
-            if key in wanted:
-                found[key] = decode_sample(members, key)
+        path = out_dir / sh.path
+        try:
+            with tarfile.open(path, "r:") as tar:
+                for info in tar:
+                    key, _, suffix = info.name.rsplit("/", 1)[-1].partition(".")
+                    if key in here and info.isfile():
+                        data = tar.extractfile(info).read()
+                        if len(data) != info.size:
+                            raise ShardError(f"{path}: member {info.name} is truncated")
+                        found.setdefault(key, {})[suffix] = data
+        except (tarfile.TarError, EOFError, OSError) as exc:
+            raise ShardError(f"{path}: unreadable tar ({exc})") from exc
     missing = [k for k in keys if k not in found]
     if missing:
         raise ValueError(f"{out_dir}: split {split!r} has no samples {missing[:5]}")
-    return [found[k] for k in keys]
+    return {k: found[k] for k in keys}
+
+
+def read_samples(out_dir: str | Path, split: str, keys: list[str]) -> list[dict]:
+    """Decode the samples with the given keys (returned in the order given)."""
+    raw = read_members_many(out_dir, split, keys)
+    return [decode_sample(raw[k], k) for k in keys]
 
 
 def read_members(out_dir: str | Path, split: str, key: str) -> dict[str, bytes]:
     """The raw members of one sample."""
-    out_dir = Path(out_dir)
-    for sh in manifest_shards(load(out_dir), split):
-        if key in sh.keys():
-            for k, members in read_shard(out_dir / sh.path):
-                if k == key:
-                    return members
-    raise ValueError(f"{out_dir}: split {split!r} has no sample {key}")
-
+    return read_members_many(out_dir, split, [key])[key]
 
 
 def recipe_from_manifest(manifest: dict, out_dir: str | Path):

@@ -332,7 +332,8 @@ def write_html(out_dir, html_dir, split: str = "test", n: int = 24, seed: int = 
     out_dir, html_dir = Path(out_dir), Path(html_dir)
     manifest = ds.load(out_dir)
     keys = choose_keys(manifest, split, n, seed)
-    samples = ds.read_samples(out_dir, split, keys)
+    raw = ds.read_members_many(out_dir, split, keys)
+    samples = [ds.decode_sample(raw[k], k) for k in keys]
     img_dir = html_dir / "img"
     img_dir.mkdir(parents=True, exist_ok=True)
     n_targets = max(len(s["dof"]) for s in samples)
@@ -341,7 +342,7 @@ def write_html(out_dir, html_dir, split: str = "test", n: int = 24, seed: int = 
     rows = []
     for s in samples:
         key = s["key"]
-        members = ds.read_members(out_dir, split, key)
+        members = raw[key]
         files = [f"{key}.aif.png", f"{key}.disparity.png", f"{key}.coverage.png"] + [
             f"{key}.dof.{i}.png" for i in range(len(s["dof"]))]
         atomic_write_bytes(img_dir / files[0], members["aif.png"])

@@ -182,3 +182,15 @@ def test_focus_sweep_at_a_target_focus_is_that_target(smoke):
     frames = sheets.focus_sweep(s["record"], library, recipe, [t0["focus"], 0.0])
     want = np.round(decode_image(members["dof.0.png"]) * 255).astype(np.uint8)
     np.testing.assert_array_equal(frames[0], want)
+
+
+def test_reader_picks_exactly_the_asked_samples(smoke):
+    """dataset.read_members_many (used by the sheet) returns what a full shard read returns."""
+    everything = {s["key"]: s["members"] for s in ds.iter_samples(smoke, "train", decode=False)}
+    keys = ["train-0000005", "train-0000000", "train-0000003"]
+    got = ds.read_members_many(smoke, "train", keys)
+    assert list(got) == keys
+    assert all(got[k] == everything[k] for k in keys)
+    assert set(got[keys[0]]) == {"json", "aif.png", "depth.exr", "cover.png", "dof.0.png", "dof.1.png"}
+    with pytest.raises(ValueError, match="train-0000042"):
+        ds.read_members_many(smoke, "train", ["train-0000042"])
