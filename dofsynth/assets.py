@@ -187,13 +187,17 @@ class _Scanner:
               file=sys.stderr)
 
     def read(self, p: Path) -> bytes:
-        data = p.read_bytes()
+        try:
+            data = p.read_bytes()
+        except OSError as exc:
+            raise AssetError(f"{p}: cannot read ({exc.strerror or exc})") from exc
         self.out.hashes[str(p)] = file_sha256(data)
         return data
 
-    def probe(self, p: Path, data: bytes, check_size: bool = True) -> tuple[tuple[int, int], np.ndarray | None, int]:
+    def probe(self, p: Path, data: bytes, check_size: bool = True,
+              decode: bool | None = None) -> tuple[tuple[int, int], np.ndarray | None, int]:
         """(w, h), decoded image or None (header mode), channels."""
-        if self.decode:
+        if self.decode if decode is None else decode:
             img = _decode(data, str(p))
             h, w, c = img.shape
         else:
@@ -233,11 +237,13 @@ class _Scanner:
             data = self.read(p)
             size, _, _ = self.probe(p, data)
             adata = self.read(a)
-            asize, aimg, _ = self.probe(a, adata, check_size=False)
+            # mattes are small single-channel files: always decoded, so the bbox and an empty
+            # matte are known at scan time even with verify = "header"
+            asize, aimg, _ = self.probe(a, adata, check_size=False, decode=True)
             if asize != size:
                 raise AssetError(f"{a}: alpha is {asize[0]}x{asize[1]} but its foreground {p} is "
                                  f"{size[0]}x{size[1]}")
-            bbox = _check_alpha(_alpha_of(aimg, str(a), False), str(a)) if aimg is not None else None
+            bbox = _check_alpha(_alpha_of(aimg, str(a), False), str(a))
         except AssetError as exc:
             return self.bad(str(p), str(exc))
         self.out.assets.append(Asset(id="fg/" + _rel_id(root / "fg", p), kind="foreground", path=str(p),
@@ -262,9 +268,15 @@ def is_paired_layout(root: Path) -> bool:
     return (root / "fg").is_dir() and (root / "alpha").is_dir()
 
 
+def _progress(files: list[Path], what: str):
+    from tqdm import tqdm
+
+    return tqdm(files, desc=f"scan {what}", unit="file", disable=len(files) < 500, file=sys.stderr)
+
+
 def scan_backgrounds(root: Path, sc: _Scanner) -> list[Asset]:
     n = len(sc.out.assets)
-    for p in image_files(root):
+    for p in _progress(image_files(root), "backgrounds"):
         sc.background(root, p)
     return _unique(sc, sc.out.assets[n:])
 
@@ -275,7 +287,7 @@ def scan_foregrounds(root: Path, sc: _Scanner) -> list[Asset]:
         alphas: dict[str, list[Path]] = {}
         for a in image_files(root / "alpha"):
             alphas.setdefault(_rel_id(root / "alpha", a), []).append(a)
-        for p in image_files(root / "fg"):
+        for p in _progress(image_files(root / "fg"), "foregrounds"):
             found = alphas.pop(_rel_id(root / "fg", p), [])
             if len(found) != 1:
                 why = "no matte" if not found else "several mattes: " + ", ".join(map(str, found))
@@ -286,7 +298,7 @@ def scan_foregrounds(root: Path, sc: _Scanner) -> list[Asset]:
             for a in left:
                 sc.bad(str(a), f"alpha without a foreground (no {root / 'fg' / stem}.* )")
     else:
-        for p in image_files(root):
+        for p in _progress(image_files(root), "foregrounds"):
             sc.cutout(root, p)
     return _unique(sc, sc.out.assets[n:])
 

@@ -292,3 +292,12 @@ def test_tiff_webp_and_exr_assets(write_recipe, tmp_path, tiny_cutouts):
         assert np.array_equal(lib.load_background(lib["bg/e"]), lin)   # EXR is linear already
         t, w = lib.load_background(lib["bg/t"]), lib.load_background(lib["bg/w"])
         assert np.array_equal(t, w)                                     # lossless WebP == TIFF
+
+
+def test_header_mode_still_decodes_mattes(write_recipe, tiny_bg_dir, tiny_fg_pairs):
+    write_png(tiny_fg_pairs / "fg" / "empty.png", noise_rgb(80, 96, 4))
+    write_png(tiny_fg_pairs / "alpha" / "empty.png", np.zeros((80, 96), np.uint8))
+    lib = build_library(load_recipe(write_recipe(backgrounds=tiny_bg_dir, foregrounds=tiny_fg_pairs,
+                                                 verify="header")))
+    assert "empty alpha" in dict(lib.skipped)[str(tiny_fg_pairs / "fg" / "empty.png")]
+    assert all(a.bbox is not None and a.bbox[2] < a.size[0] for a in lib.foregrounds)
