@@ -347,16 +347,18 @@ def _span(keys: list[str]) -> str:
 
 
 def _check_totals(manifest: dict, shards: dict[str, list], report: Report) -> None:
-    """The manifest's per-split sample totals agree with its own shard list."""
-    block = manifest.get("splits", {})
+    """The manifest's per-split and overall totals agree with its own shard list."""
     for split, infos in shards.items():
-        entry = block.get(split) if isinstance(block, dict) else None
-        listed = None
-        if isinstance(entry, dict):
-            listed = next((entry[k] for k in ("samples", "count", "num_samples") if _is_int(entry.get(k))), None)
+        listed = manifest["splits"][split].get("samples")
         n = sum(sh.samples for sh in infos)
-        if listed is not None and listed != n:
+        if listed != n:
             report.add(ds.MANIFEST, f"split {split!r} lists {listed} samples, its shards {n}")
+    totals = manifest.get("totals", {})
+    for name, n in (("samples", sum(sh.samples for i in shards.values() for sh in i)),
+                    ("shards", sum(len(i) for i in shards.values())),
+                    ("bytes", sum(sh.bytes for i in shards.values() for sh in i))):
+        if name in totals and totals[name] != n:
+            report.add(ds.MANIFEST, f"totals.{name} is {totals[name]}, its shards add up to {n}")
 
 
 def _check_sample(key, members, split, where, report, assets) -> None:

@@ -165,6 +165,7 @@ def test_shard_with_wrong_sample_count_is_caught(copy):
     m = json.loads((copy / "manifest.json").read_text())
     m["splits"]["test"]["shards"][0]["samples"] += 1
     m["splits"]["test"]["samples"] += 1
+    m["totals"]["samples"] += 1
     (copy / "manifest.json").write_text(json.dumps(m))
     report = verify_dataset(copy)
     name = _shard(copy, "test", 0)
@@ -305,3 +306,13 @@ def test_same_content_under_another_id_is_a_leak(copy):
     assert len(report.problems) == 1, report.lines()
     msg = str(report.problems[0])
     assert f"asset sha256 {sha[:16]} is in both splits" in msg and f"{name}: {test0['key']}" in msg
+
+
+def test_manifest_totals_are_checked(copy):
+    m = json.loads((copy / "manifest.json").read_text())
+    m["splits"]["train"]["samples"] = 5
+    m["totals"]["bytes"] += 1
+    (copy / "manifest.json").write_text(json.dumps(m))
+    assert [str(p) for p in verify_dataset(copy).problems] == [
+        "manifest.json: split 'train' lists 5 samples, its shards 6",
+        f"manifest.json: totals.bytes is {m['totals']['bytes']}, its shards add up to {m['totals']['bytes'] - 1}"]
