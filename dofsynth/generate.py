@@ -384,7 +384,8 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
                         removed.append(f"{s}/{p.name}")
         kept = sum(len(v) for v in done.values())
 
-        library = _library_for(recipe) if todo else None
+        in_process = workers == 1 or len(todo) <= 1
+        library = _library_for(recipe) if todo and in_process else None
         total = sum(t.samples for t in tasks)
         bar = None
         if progress:
@@ -394,7 +395,7 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
                        desc=f"generate {out.name}", dynamic_ncols=True, smoothing=0.1)
         peak, busy = peak_rss_mb(), 0.0
         try:
-            if workers == 1 or len(todo) <= 1:
+            if in_process:
                 for t in todo:
                     ts = time.perf_counter()
                     info = generate_shard(recipe, out, t.split, t.index, limit=limits[t.split], library=library,
@@ -432,11 +433,12 @@ def _run_pool(recipe, out: Path, todo: list[ShardTask], limits, workers: int, do
     """Render `todo` in a spawn process pool and record each finished shard.
     Returns (largest worker peak MiB, seconds spent in shards summed over workers)."""
     ctx = mp.get_context("spawn")
-    q = ctx.Queue()
+    q = ctx.Queue() if bar is not None else None
     peak, busy = 0.0, 0.0
     ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(recipe, q))
     try:
         futures = {ex.submit(_worker_shard, str(out), t.split, t.index, limits[t.split]): t for t in todo}
+        _library_for(recipe)  # for the manifest's skipped-asset list, while the workers start
         pending = set(futures)
         while pending:
             finished, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
@@ -464,7 +466,7 @@ def _run_pool(recipe, out: Path, todo: list[ShardTask], limits, workers: int, do
 
 
 def _drain(q, bar) -> None:
-    while True:
+    while q is not None:
         try:
             n = q.get_nowait()
         except (queue_mod.Empty, OSError, ValueError):
