@@ -38,8 +38,8 @@ class Layers:
 
 def background_disparity(record: dict, shape: tuple[int, int]) -> np.ndarray:
     """The background disparity map (H, W) from a sample record's `background` block
-    (docs/FORMAT.md: "horizontal" runs b0 at the left edge to b1 at the right edge, "vertical"
-    b0 at the bottom edge to b1 at the top edge; sampled at pixel centres)."""
+    (docs/FORMAT.md: "horizontal" runs from b0 at the left pixel column to b1 at the right one,
+    "vertical" from b0 at the bottom row to b1 at the top row, linearly, as dofsynth.compose)."""
     h, w = shape
     bg = record["background"]
     b0 = float(bg["b0"])
@@ -49,9 +49,9 @@ def background_disparity(record: dict, shape: tuple[int, int]) -> np.ndarray:
     if bg["mode"] != "ramp":
         raise ValueError(f"record {record.get('key')}: unknown background mode {bg['mode']!r}")
     if bg["direction"] == "horizontal":
-        t = ((np.arange(w) + 0.5) / w)[None, :]
+        t = (np.linspace(0.0, 1.0, w) if w > 1 else np.zeros(1))[None, :]
     elif bg["direction"] == "vertical":
-        t = ((h - np.arange(h) - 0.5) / h)[:, None]
+        t = (np.linspace(1.0, 0.0, h) if h > 1 else np.zeros(1))[:, None]
     else:
         raise ValueError(f"record {record.get('key')}: unknown ramp direction {bg['direction']!r}")
     return np.broadcast_to(b0 + (b1 - b0) * t, (h, w)).astype(np.float32)

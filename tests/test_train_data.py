@@ -62,7 +62,7 @@ def make_sample(split: str, index: int, size: int, seed: int = 0) -> dict:
         "front": {"disparity": 0.8, "scale": 1.0, "x": 0, "y": 0, "flip": False},
         "targets": [{"focus": 0.8, "max_coc": 4.0}, {"focus": 0.2, "max_coc": 2.0}],
     }
-    xs = (np.arange(w) + 0.5) / w
+    xs = np.linspace(0.0, 1.0, w)
     depth = np.broadcast_to(b0 + (b1 - b0) * xs if ramp else np.full(w, b0), (h, w)).astype(np.float32).copy()
     depth[mid], depth[front] = 0.5, 0.8
     aif = bg.copy()

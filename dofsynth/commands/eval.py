@@ -1,0 +1,38 @@
+"""`dofsynth eval RUN --data OUT`: PSNR/SSIM of a trained run next to the classical renderer."""
+from __future__ import annotations
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "eval",
+        help="score a trained run on the test split against the classical renderer",
+        description=(
+            "Run the trained networks of RUN on every target of the test split of OUT and report "
+            "PSNR and SSIM (sRGB, against the rendered targets) next to the classical renderer "
+            "given the same corrupted disparity as a single image, and the all-in-focus input. "
+            "The table is printed and written to RUN/eval.csv and RUN/eval.json."
+        ),
+    )
+    p.add_argument("run_dir", metavar="RUN", help="run folder written by `dofsynth train`")
+    p.add_argument("--data", required=True, help="data set folder with a test split")
+    p.add_argument("--split", default="test", help="which split to score (default: test)")
+    p.add_argument("--limit", type=int, default=None, help="score only the first N samples")
+    p.add_argument("--no-classical", action="store_true", help="skip the classical renderer")
+    p.add_argument("--device", default=None, choices=["cpu", "cuda"], help="default: cuda when available")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from dofsynth.train.evaluate import evaluate_run, format_table
+
+    if not Path(args.run_dir).is_dir():
+        raise FileNotFoundError(f"RUN {args.run_dir}: no such run folder")
+    if args.limit is not None and args.limit < 1:
+        raise ValueError(f"--limit must be >= 1, got {args.limit}")
+    result = evaluate_run(args.run_dir, args.data, split=args.split, limit=args.limit,
+                          classical=not args.no_classical, device=args.device)
+    print(format_table(result))
+    print(f"written: {Path(args.run_dir) / 'eval.csv'}, {Path(args.run_dir) / 'eval.json'}")
+    return 0

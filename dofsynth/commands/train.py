@@ -1,0 +1,41 @@
+"""`dofsynth train CONFIG --data OUT --run RUN`: train (or continue training) the DeepLens networks."""
+from __future__ import annotations
+
+import argparse
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "train",
+        help="train the DeepLens lens-blur and upsampling networks on a data set",
+        description=(
+            "Train the DeepLens networks on the shards of a dofsynth data set (OUT/train, and "
+            "OUT/test for periodic evaluation). RUN receives config.toml (the resolved config), "
+            "log.csv, ckpt.pt (model, optimizer, step, config, RNG states) and eval results. "
+            "Running the same command again continues from the checkpoint. For several GPUs: "
+            "torchrun --nproc_per_node N -m dofsynth train ... --device cuda."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("config", help="training recipe (TOML), e.g. recipes/train-tiny.toml")
+    p.add_argument("--data", required=True, help="data set folder written by `dofsynth generate`")
+    p.add_argument("--run", required=True, help="run folder for checkpoints, logs and config")
+    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
+                   help="where to train (auto = cuda when available)")
+    p.add_argument("--steps", type=int, default=None, help="stop after step N this time (the LR schedule still runs to train.max_steps; "
+                        "run again without --steps to continue)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from dofsynth.train.config import load
+    from dofsynth.train.loop import train
+
+    if not Path(args.data).is_dir():
+        raise FileNotFoundError(f"--data {args.data}: no such data set folder")
+    if args.steps is not None and args.steps < 0:
+        raise ValueError(f"--steps must be >= 0, got {args.steps}")
+    train(load(args.config), args.data, args.run, device=args.device, stop_at=args.steps)
+    return 0

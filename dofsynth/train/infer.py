@@ -1,0 +1,91 @@
+"""Apply a trained run to any photo and disparity map, at any resolution.
+
+    render_photo(run_dir, image_linear, disparity, focus, aperture=1.0) -> linear RGB (H, W, 3)
+
+The lens blur runs at the training low-resolution scale: the photo is area-downsampled by
+2**n, with n the smallest number of halvings that brings its long side to at most
+[infer] low_res_side (the training image side / 2**levels), so a blur covers the same fraction
+of the picture as in training. Then n guided x2 upsamplings (shared weights) bring the result
+back to exactly (H, W) (non-power-of-two sizes included, see models.size_chain). A photo
+already smaller than low_res_side is enlarged to it first and the result area-reduced back.
+
+aperture = r*/r_max in (0, 1]: the signed disparity fed to the network is
+(disparity - focus) * aperture (the network was trained with c / r_max). Inference runs in
+float32 under torch.inference_mode, on CUDA when available.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dofsynth.color import linear_to_srgb, srgb_to_linear
+from dofsynth.train.checkpoint import CHECKPOINT, load_model
+from dofsynth.train.models import area_resize, bilinear, size_chain
+
+_MODELS: dict = {}
+
+
+def cached_model(run_dir: str | Path, device: str):
+    """load_model, cached by (checkpoint path, its mtime, device)."""
+    path = Path(run_dir)
+    path = path / CHECKPOINT if path.is_dir() else path
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no trained model (run `dofsynth train` first)")
+    key = (str(path.resolve()), path.stat().st_mtime_ns, device)
+    if key not in _MODELS:
+        _MODELS.clear()
+        _MODELS[key] = load_model(path, device)
+    return _MODELS[key]
+
+
+def upsampling_steps(side: int, low_res_side: int) -> int:
+    """The number n of halvings (rounding up) that bring `side` to at most `low_res_side`."""
+    return max(0, math.ceil(math.log2(side / low_res_side) - 1e-9)) if side > low_res_side else 0
+
+
+def render_photo(run_dir: str | Path, image_linear: np.ndarray, disparity: np.ndarray, focus: float,
+                 aperture: float = 1.0, *, device: str | None = None) -> np.ndarray:
+    """Shallow depth of field for a photo with the networks of `run_dir`.
+
+    image_linear: (H, W, 3) linear RGB >= 0. disparity: (H, W) normalized disparity in [0, 1]
+    (1 = nearest). focus: the in-focus disparity. aperture: r*/r_max in (0, 1].
+    Returns linear RGB (H, W, 3) float32.
+    """
+    image = np.asarray(image_linear, dtype=np.float32)
+    disp = np.asarray(disparity, dtype=np.float32)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"image_linear must be (H, W, 3), got shape {image.shape}")
+    if disp.shape != image.shape[:2]:
+        raise ValueError(f"disparity must be {image.shape[:2]}, got shape {disp.shape}")
+    if not (np.all(np.isfinite(image)) and np.all(np.isfinite(disp))):
+        raise ValueError("image_linear and disparity must be finite")
+    if not (math.isfinite(focus) and 0.0 <= focus <= 1.0):
+        raise ValueError(f"focus must be a disparity in [0, 1], got {focus}")
+    if not (math.isfinite(aperture) and 0.0 < aperture <= 1.0):
+        raise ValueError(f"aperture (r*/r_max) must lie in (0, 1], got {aperture}")
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+    model, cfg = cached_model(run_dir, device)
+
+    net_in = linear_to_srgb(image) if cfg.data.color == "srgb" else np.maximum(image, 0.0)
+    x = torch.from_numpy(np.ascontiguousarray(net_in.transpose(2, 0, 1)))[None].to(device)
+    d = torch.from_numpy(np.ascontiguousarray(disp))[None, None].to(device)
+    h, w = image.shape[:2]
+    low_side = cfg.infer.low_res_side
+    work = (h, w)
+    if max(h, w) < low_side:  # enlarge so that the lens blur still sees its training scale
+        f = low_side / max(h, w)
+        work = (max(1, round(h * f)), max(1, round(w * f)))
+        x, d = bilinear(x, work), bilinear(d, work)
+    steps = upsampling_steps(max(work), low_side)
+    sizes = size_chain(work, steps)
+    signed_lo = (area_resize(d, sizes[0]) - focus) * aperture
+    with torch.inference_mode():
+        _, out = model(x, signed_lo, steps)
+        out = area_resize(out, (h, w)).float()
+    out = out[0].permute(1, 2, 0).cpu().numpy()
+    if cfg.data.color == "srgb":
+        return srgb_to_linear(np.clip(out, 0.0, 1.0))
+    return np.maximum(out, 0.0).astype(np.float32)

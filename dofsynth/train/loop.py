@@ -1,0 +1,252 @@
+"""The training loop, in the manner of nanoGPT's train.py: one function, top to bottom.
+
+    dofsynth train recipes/train-tiny.toml --data OUT --run RUN             # CPU or one GPU
+    torchrun --nproc_per_node 8 -m dofsynth train CONFIG --data OUT --run RUN --device cuda
+
+What happens: set up (distributed or not), resolve the config against the data and write it to
+RUN/config.toml, build the model and AdamW, resume from RUN/ckpt.pt if it exists, then step:
+batch -> forward (autocast on CUDA) -> loss J(L) + beta J(H) -> backward -> clip -> step.
+Every log_interval steps a row goes to RUN/log.csv (and TensorBoard when installed); every
+eval_interval steps the test split is evaluated; every checkpoint_interval steps, and at the
+end, RUN/ckpt.pt is written. Under torchrun every rank trains on its share of the shards and
+DistributedDataParallel averages the gradients; only rank 0 writes files.
+
+Resume: running the same command again continues from the checkpoint's step, optimizer state,
+RNG states and data position (epoch, batch); on one process the continued run is identical to
+an uninterrupted one. `--steps N` (stop_at) stops early without changing the learning-rate
+schedule, which always runs to train.max_steps. A config other than the stored one is refused.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import sys
+import time
+from contextlib import nullcontext
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
+
+from dofsynth.train import checkpoint
+from dofsynth.train.config import Config, from_dict, to_toml
+from dofsynth.train.data import find_shards, make_loader, resolve
+from dofsynth.train.loss import deeplens_loss
+from dofsynth.train.models import DeepLensNet
+
+LOG_FIELDS = ["step", "epoch", "lr", "loss", "loss_low", "loss_high", "val_loss", "val_psnr",
+              "samples_per_s", "elapsed_s"]
+
+
+def learning_rate(step: int, cfg: Config) -> float:
+    """Linear warm-up to train.lr, then cosine decay to train.min_lr at train.max_steps."""
+    t = cfg.train
+    if step < t.warmup_steps:
+        return t.lr * (step + 1) / t.warmup_steps
+    progress = min(1.0, (step - t.warmup_steps) / max(1, t.max_steps - t.warmup_steps))
+    return t.min_lr + 0.5 * (1.0 + math.cos(math.pi * progress)) * (t.lr - t.min_lr)
+
+
+def batch_stream(dataset, loader, epoch: int, skip: int):
+    """Endless (epoch, batch index, batch) triples, starting `skip` batches into `epoch`."""
+    while True:
+        dataset.set_epoch(epoch)
+        n = 0
+        for i, batch in enumerate(loader):
+            n += 1
+            if i >= skip:
+                yield epoch, i, batch
+        if n == 0:
+            raise ValueError("the training split yielded no batch (no samples for this process)")
+        epoch, skip = epoch + 1, 0
+
+
+def to_device(batch: dict, device) -> dict:
+    return {k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v for k, v in batch.items()}
+
+
+def psnr(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Mean over the batch of PSNR (dB) of images in [0, 1] (B, C, H, W)."""
+    mse = ((x.float().clamp(0, 1) - y.float()) ** 2).flatten(1).mean(1)
+    return (10 * torch.log10(1.0 / mse.clamp_min(1e-10))).mean()
+
+
+@torch.no_grad()
+def evaluate(model, loader, cfg: Config, device, autocast) -> dict:
+    """Loss and PSNR of H on the first train.eval_batches batches of the test split."""
+    model.eval()
+    totals = torch.zeros(3, device=device)  # loss sum, psnr sum, batches
+    for i, batch in enumerate(loader):
+        if i >= cfg.train.eval_batches:
+            break
+        b = to_device(batch, device)
+        with autocast:
+            low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"])
+        loss, _, _ = deeplens_loss(low, high, b["target_lo"], b["target"], cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps)
+        totals += torch.stack([loss, psnr(high, b["target"]), torch.ones((), device=device)])
+    if dist.is_initialized():
+        dist.all_reduce(totals)
+    model.train()
+    n = max(1.0, totals[2].item())
+    return {"val_loss": totals[0].item() / n, "val_psnr": totals[1].item() / n}
+
+
+def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str = "auto",
+          stop_at: int | None = None, out=None) -> dict:
+    """Train (or continue training) a DeepLensNet; returns {"step", "loss", "val_loss", ...}.
+
+    stop_at: stop after this step (at most train.max_steps) this time; the learning-rate
+    schedule still runs to train.max_steps, so stopping and resuming changes nothing.
+    """
+    # -- processes and device ------------------------------------------------------------------
+    ddp = int(os.environ.get("WORLD_SIZE", "1")) > 1
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device is available")
+    if ddp:
+        dist.init_process_group(backend="nccl" if device.startswith("cuda") else "gloo")
+        rank, world = dist.get_rank(), dist.get_world_size()
+        if device.startswith("cuda"):
+            device = f"cuda:{int(os.environ['LOCAL_RANK'])}"
+            torch.cuda.set_device(device)
+    else:
+        rank, world = 0, 1
+    master = rank == 0
+    cuda = device.startswith("cuda")
+    out = out or sys.stdout
+    say = (lambda msg: print(msg, file=out, flush=True)) if master else (lambda msg: None)
+
+    # -- config, run folder, resume ------------------------------------------------------------
+    run_dir = Path(run_dir)
+    cfg = resolve(cfg, data_dir)
+    ckpt_path = run_dir / checkpoint.CHECKPOINT
+    state = checkpoint.load(ckpt_path, map_location=device) if ckpt_path.is_file() else None
+    if state is not None:
+        stored = from_dict(state["config"], str(ckpt_path))
+        if stored != cfg:
+            raise ValueError(f"{run_dir}: was trained with another config (see {run_dir / 'config.toml'}); "
+                             "use a new --run folder or the same config")
+    if master:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "config.toml").write_text(to_toml(cfg))
+        env = {"torch": torch.__version__, "python": sys.version.split()[0], "device": device,
+               "world_size": world, "cuda": torch.cuda.get_device_name(device) if cuda else None}
+        (run_dir / "env.json").write_text(json.dumps(env, indent=2, sort_keys=True) + "\n")
+
+    # -- model, optimizer, precision -----------------------------------------------------------
+    t = cfg.train
+    torch.manual_seed(t.seed)  # the same initial weights on every rank
+    model = DeepLensNet(cfg.model).to(device)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=t.lr, betas=tuple(t.betas),
+                                  weight_decay=t.weight_decay)
+    step, epoch, batch_index, best_val = 0, 0, 0, None
+    if state is not None:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        step, epoch, batch_index, best_val = state["step"], state["epoch"], state["batch"] + 1, state["best_val"]
+        checkpoint.set_rng_states(state["rng"])
+        say(f"resuming {run_dir} at step {step}")
+    end = t.max_steps if stop_at is None else min(int(stop_at), t.max_steps)
+    if step >= end:
+        say(f"{run_dir}: already trained to step {step} (stop at {end}, max_steps {t.max_steps})")
+        if ddp:
+            dist.destroy_process_group()
+        return {"step": step, "loss": None}
+    dtype = {"bfloat16": torch.bfloat16, "float16": torch.float16, "float32": torch.float32}[t.dtype]
+    amp = cuda and dtype != torch.float32
+    autocast = torch.autocast("cuda", dtype=dtype) if amp else nullcontext()
+    scaler = torch.amp.GradScaler("cuda", enabled=amp and dtype == torch.float16)
+    if t.compile and cuda:
+        model = torch.compile(model)
+    if ddp:
+        model = DistributedDataParallel(model, device_ids=[torch.device(device).index] if cuda else None)
+
+    # -- data ------------------------------------------------------------------------------------
+    train_ds, train_loader = make_loader(data_dir, "train", cfg, train=True, seed=t.seed, pin_memory=cuda)
+    try:
+        find_shards(data_dir, "test")
+        _, eval_loader = make_loader(data_dir, "test", cfg, train=False, seed=t.seed, pin_memory=cuda)
+    except FileNotFoundError:
+        eval_loader = None
+        say("no test split: periodic evaluation is off")
+    batches = batch_stream(train_ds, train_loader, epoch, batch_index)
+
+    # -- logging ---------------------------------------------------------------------------------
+    log_file = writer = tb = None
+    if master:
+        log_path = run_dir / "log.csv"
+        new_log = not log_path.is_file()
+        log_file = open(log_path, "a", newline="")
+        writer = csv.DictWriter(log_file, fieldnames=LOG_FIELDS)
+        if new_log:
+            writer.writeheader()
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+            tb = SummaryWriter(str(run_dir / "tb"))
+        except ImportError:
+            tb = None
+
+    # -- the loop --------------------------------------------------------------------------------
+    say(f"training {sum(p.numel() for p in model.parameters()):,} parameters on {device} x{world}, "
+        f"steps {step} -> {end} of {t.max_steps}")
+    model.train()
+    t0 = time.perf_counter()
+    samples, loss_value, row, eval_s = 0, None, {}, 0.0
+    while step < end:
+        lr = learning_rate(step, cfg)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        epoch, batch_index, batch = next(batches)
+        b = to_device(batch, device)
+        with autocast:
+            low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"])
+        loss, j_low, j_high = deeplens_loss(low, high, b["target_lo"], b["target"],
+                                            cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps)
+        scaler.scale(loss).backward()
+        if t.grad_clip > 0:
+            scaler.unscale_(optimizer)
+            torch.nn.utils.clip_grad_norm_(model.parameters(), t.grad_clip)
+        scaler.step(optimizer)
+        scaler.update()
+        optimizer.zero_grad(set_to_none=True)
+        step += 1
+        samples += b["image"].shape[0] * world
+        last = step == end
+
+        row = {}
+        if step % t.log_interval == 0 or last:
+            loss_value = loss.item()
+            elapsed = time.perf_counter() - t0 - eval_s  # training time only
+            row = {"step": step, "epoch": epoch, "lr": f"{lr:.3g}", "loss": f"{loss_value:.6g}",
+                   "loss_low": f"{j_low.item():.6g}", "loss_high": f"{j_high.item():.6g}",
+                   "samples_per_s": f"{samples / elapsed:.3g}", "elapsed_s": f"{elapsed:.1f}"}
+        if eval_loader is not None and t.eval_interval > 0 and (step % t.eval_interval == 0 or last):
+            t_eval = time.perf_counter()
+            val = evaluate(model, eval_loader, cfg, device, autocast)
+            eval_s += time.perf_counter() - t_eval
+            row.update({"step": step, "epoch": epoch, **{k: f"{v:.6g}" for k, v in val.items()}})
+            best_val = val["val_loss"] if best_val is None else min(best_val, val["val_loss"])
+        if row and master:
+            writer.writerow(row)
+            log_file.flush()
+            if tb is not None:
+                for k in ("loss", "loss_low", "loss_high", "val_loss", "val_psnr", "lr"):
+                    if k in row:
+                        tb.add_scalar(k, float(row[k]), step)
+            say(" ".join(f"{k} {v}" for k, v in row.items()))
+        if master and (step % t.checkpoint_interval == 0 or last):
+            checkpoint.save(ckpt_path, model, optimizer, step, epoch, batch_index, cfg, best_val)
+
+    # -- done ------------------------------------------------------------------------------------
+    if master:
+        log_file.close()
+        if tb is not None:
+            tb.close()
+    if ddp:
+        dist.barrier()
+        dist.destroy_process_group()
+    return {"step": step, "loss": loss_value, "val_loss": row.get("val_loss"), "best_val": best_val}

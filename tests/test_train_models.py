@@ -1,0 +1,116 @@
+"""DeepLens networks and loss: shapes, gradient flow, the loss by hand, a tiny model overfits."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dofsynth.train.config import ModelConfig
+from dofsynth.train.loss import deeplens_loss, normalized_loss
+from dofsynth.train.models import (ChannelFeatures, DeepLensNet, GuidedUpsampler, KernelPredictor,
+                                   LensBlurNet, size_chain)
+
+TINY = ModelConfig(feat_channels=4, kp_width=8, kp_depth=2, up_width=8)
+
+
+def test_size_chain_halves_rounding_up():
+    assert size_chain((100, 60), 2) == [(25, 15), (50, 30), (100, 60)]
+    assert size_chain((33, 17), 3) == [(5, 3), (9, 5), (17, 9), (33, 17)]
+    assert size_chain((8, 8), 0) == [(8, 8)]
+
+
+def test_module_shapes():
+    torch.manual_seed(0)
+    x = torch.rand(2, 3, 20, 28)
+    s = torch.rand(2, 1, 20, 28) * 2 - 1
+    feats = ChannelFeatures(8, (1, 2, 4, 8))
+    assert feats(x).shape == (2, 3, 32, 20, 28) and feats.out_channels == 32   # c = 32 as in the paper
+    assert KernelPredictor(32, 8, 3)(x, s).shape == (2, 32, 20, 28)
+    assert LensBlurNet(8, (1, 2, 4, 8), 8, 3)(x, s).shape == (2, 3, 20, 28)
+    up = GuidedUpsampler(8)(x, x, s, torch.rand(2, 3, 40, 55))
+    assert up.shape == (2, 3, 40, 55)
+
+
+@pytest.mark.parametrize("size,steps", [((32, 32), 1), ((45, 70), 2), ((17, 9), 3)])
+def test_deeplens_net_any_size(size, steps):
+    torch.manual_seed(0)
+    net = DeepLensNet(TINY)
+    low_size = size_chain(size, steps)[0]
+    low, high = net(torch.rand(1, 3, *size), torch.zeros(1, 1, *low_size), steps)
+    assert low.shape == (1, 3, *low_size) and high.shape == (1, 3, *size)
+    with pytest.raises(ValueError, match="signed_lo"):
+        net(torch.rand(1, 3, *size), torch.zeros(1, 1, low_size[0] + 1, low_size[1]), steps)
+    with pytest.raises(ValueError, match="image"):
+        net(torch.rand(1, 4, *size), torch.zeros(1, 1, *low_size), steps)
+
+
+def test_gradients_reach_every_parameter():
+    torch.manual_seed(0)
+    net = DeepLensNet(TINY)
+    image = torch.rand(2, 3, 32, 32)
+    signed = torch.rand(2, 1, 8, 8) - 0.5
+    low, high = net(image, signed, 2)
+    loss, _, _ = deeplens_loss(low, high, torch.rand_like(low), torch.rand_like(high))
+    loss.backward()
+    for name, p in net.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0, name
+
+
+def test_guided_upsampler_blends_between_the_sharp_image_and_the_upsampled_result():
+    torch.manual_seed(0)
+    up = GuidedUpsampler(4)
+    hi = torch.rand(1, 3, 16, 16)
+    lo = torch.rand(1, 3, 8, 8)
+    out = up(lo, lo, torch.zeros(1, 1, 8, 8), hi)
+    up_lo = torch.nn.functional.interpolate(lo, size=(16, 16), mode="bilinear", align_corners=False)
+    assert torch.all(out >= torch.minimum(hi, up_lo) - 1e-6) and torch.all(out <= torch.maximum(hi, up_lo) + 1e-6)
+
+
+def test_normalized_loss_by_hand():
+    x = torch.tensor([1.0, 3.0, -2.0, 0.5])
+    y = torch.tensor([0.0, 1.0, -2.0, 0.5])      # errors 1, 2, 0, 0
+    expect = (1 + 2**2.5) / (1 + 2**1.5)        # = 1.73880...
+    assert math.isclose(normalized_loss(x, y, alpha=1.5).item(), expect, rel_tol=1e-6)
+    assert math.isclose(expect, 1.738796, rel_tol=1e-5)
+    assert math.isclose(normalized_loss(x, y, alpha=0.0).item(), 3 / 4, rel_tol=1e-6)  # alpha 0: plain L1 mean
+    total, jl, jh = deeplens_loss(x, y, x * 0, y * 0, beta=0.5)
+    assert math.isclose(total.item(), jl.item() + 0.5 * jh.item(), rel_tol=1e-6)
+
+
+def test_zero_error_gives_zero_loss_and_finite_gradients():
+    x = torch.rand(2, 3, 4, 4, requires_grad=True)
+    loss = normalized_loss(x, x.detach().clone())
+    assert loss.item() == 0.0
+    loss.backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() == 0
+    with pytest.raises(ValueError, match="shape"):
+        normalized_loss(torch.zeros(2), torch.zeros(3))
+
+
+def test_a_tiny_model_overfits_a_small_batch():
+    """Lens blur of a fixed batch: the loss falls at least five-fold (about eight-fold) in 200 CPU steps."""
+    g = torch.Generator().manual_seed(0)
+    torch.manual_seed(0)
+    image = torch.nn.functional.interpolate(torch.rand(2, 3, 4, 4, generator=g), size=(16, 16), mode="nearest")
+    disparity = torch.zeros(2, 1, 16, 16)
+    disparity[:, :, 4:12, 4:12] = 1.0
+    focus = 1.0
+    blurred = torch.nn.functional.avg_pool2d(image, 5, stride=1, padding=2, count_include_pad=False)
+    w = (disparity - focus).abs()
+    target = (1 - w) * image + w * blurred                     # sharp square in focus, blurred around it
+    target_lo = torch.nn.functional.avg_pool2d(target, 2)
+    signed_lo = torch.nn.functional.avg_pool2d(disparity - focus, 2)
+    net = DeepLensNet(TINY)
+    opt = torch.optim.AdamW(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(200):
+        low, high = net(image, signed_lo, 1)
+        loss, _, _ = deeplens_loss(low, high, target_lo, target)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert np.isfinite(losses).all()
+    assert min(losses[-10:]) < losses[0] / 5, (losses[0], losses[-10:])
