@@ -125,11 +125,11 @@ def test_sigkill_midway_then_resume_is_byte_identical(recipe, reference, tmp_pat
                             start_new_session=True, stderr=subprocess.PIPE)
     try:
         deadline = time.monotonic() + 60
-        while not (out / "train" / "train-000001.tar").exists():  # two shards done, a third begun
+        # kill when two shards are done and the third is half written
+        while not ((out / "train" / "train-000001.tar").exists() and list((out / "train").glob(".train-000002.tar.tmp-*"))):
             assert proc.poll() is None, proc.stderr.read().decode()
-            assert time.monotonic() < deadline, "the run never finished a shard"
+            assert time.monotonic() < deadline, "the run never reached its third shard"
             time.sleep(0.01)
-        time.sleep(0.1)
     finally:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
