@@ -167,3 +167,20 @@ def test_two_steps_on_the_generators_smoke_data(tmp_path):
     assert checkpoint.load(run / "ckpt.pt")["step"] == 2
     out = render_photo(run, np.full((64, 64, 3), 0.5, np.float32), np.full((64, 64), 0.5, np.float32), 0.5)
     assert out.shape == (64, 64, 3) and np.isfinite(out).all()
+
+
+def test_two_processes_under_torchrun_train_together_and_rank0_writes(setup, tmp_path):
+    """DistributedDataParallel on the CPU (gloo): the same code path as multi-GPU training."""
+    import subprocess
+    import sys
+
+    _, data, cfg_path, _ = setup
+    run = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "dofsynth", "--", "train", str(cfg_path), "--data", str(data), "--run", str(run),
+           "--device", "cpu", "--steps", "2"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert json.loads((run / "env.json").read_text())["world_size"] == 2
+    assert checkpoint.load(run / "ckpt.pt")["step"] == 2
+    assert [r["step"] for r in _rows(run)] == ["1", "2"]          # one writer

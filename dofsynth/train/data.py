@@ -182,7 +182,7 @@ def make_loader(data_dir: str | Path, split: str, cfg: Config, *, train: bool, s
     """The dataset and a DataLoader of [data] batch_size / num_workers over OUT/<split>."""
     ds = DofShards(find_shards(data_dir, split), cfg, train=train, seed=seed, split=split)
     loader = DataLoader(ds, batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers,
-                        pin_memory=pin_memory, drop_last=train)
+                        pin_memory=pin_memory, generator=torch.Generator().manual_seed(seed))
     return ds, loader
 
 

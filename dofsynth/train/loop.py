@@ -124,7 +124,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
     run_dir = Path(run_dir)
     cfg = resolve(cfg, data_dir)
     ckpt_path = run_dir / checkpoint.CHECKPOINT
-    state = checkpoint.load(ckpt_path, map_location=device) if ckpt_path.is_file() else None
+    state = checkpoint.load(ckpt_path) if ckpt_path.is_file() else None  # on the CPU: RNG states stay CPU tensors
     if state is not None:
         stored = from_dict(state["config"], str(ckpt_path))
         if stored != cfg:
@@ -226,7 +226,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
                    "samples_per_s": f"{samples / elapsed:.3g}", "elapsed_s": f"{elapsed:.1f}"}
         if eval_loader is not None and t.eval_interval > 0 and (step % t.eval_interval == 0 or last):
             t_eval = time.perf_counter()
-            val = evaluate(model, eval_loader, cfg, device, autocast)
+            val = evaluate(checkpoint.unwrap(model), eval_loader, cfg, device, autocast)
             eval_s += time.perf_counter() - t_eval
             row.update({"step": step, "epoch": epoch, **{k: f"{v:.6g}" for k, v in val.items()}})
             best_val = val["val_loss"] if best_val is None else min(best_val, val["val_loss"])
