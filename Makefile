@@ -5,6 +5,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+TSTAMP := $(VENV)/.installed-test
 
 .PHONY: demo test install bench clean
 
@@ -16,18 +17,23 @@ $(PY):
 # while an unpinned torch would pull a CUDA build of several GB.
 $(STAMP): pyproject.toml | $(PY)
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install -q -e .
 	touch $(STAMP)
+
+# The test suite also needs pytest and Ray (the distributed-executor tests start a local cluster).
+$(TSTAMP): $(STAMP)
+	$(PY) -m pip install -q -e '.[test,ray]'
+	touch $(TSTAMP)
 
 install: $(STAMP)
 
 demo: $(STAMP)
 	$(PY) -m dofsynth demo --out out
 
-test: $(STAMP)
+test: $(TSTAMP)
 	$(PY) -m pytest -q -n 2
 
-bench: $(STAMP)
+bench: $(TSTAMP)
 	$(PY) benchmarks/render.py
 	$(PY) benchmarks/generate.py
 	$(PY) benchmarks/train.py
