@@ -23,6 +23,15 @@ ASSETS = Path(__file__).resolve().parents[2] / "shared" / "assets"
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """Tiny tensors: one intra-op thread is faster and does not fight other test workers."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     """A tiny data set, a tiny config file and one finished 4-step run."""
@@ -31,7 +40,12 @@ def setup(tmp_path_factory):
     cfg_path = root / "tiny.toml"
     cfg_path.write_text(to_toml(tiny_config()))
     run = root / "run4"
-    assert main(["train", str(cfg_path), "--data", str(data), "--run", str(run), "--device", "cpu"]) == 0
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        assert main(["train", str(cfg_path), "--data", str(data), "--run", str(run), "--device", "cpu"]) == 0
+    finally:
+        torch.set_num_threads(n)
     return root, data, cfg_path, run
 
 
@@ -171,6 +185,7 @@ def test_two_steps_on_the_generators_smoke_data(tmp_path):
 
 def test_two_processes_under_torchrun_train_together_and_rank0_writes(setup, tmp_path):
     """DistributedDataParallel on the CPU (gloo): the same code path as multi-GPU training."""
+    import os
     import subprocess
     import sys
 
@@ -179,7 +194,8 @@ def test_two_processes_under_torchrun_train_together_and_rank0_writes(setup, tmp
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
            "-m", "dofsynth", "--", "train", str(cfg_path), "--data", str(data), "--run", str(run),
            "--device", "cpu", "--steps", "2"]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env=env)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads((run / "env.json").read_text())["world_size"] == 2
     assert checkpoint.load(run / "ckpt.pt")["step"] == 2

@@ -15,6 +15,15 @@ from dofsynth.train.models import (ChannelFeatures, DeepLensNet, GuidedUpsampler
 TINY = ModelConfig(feat_channels=4, kp_width=8, kp_depth=2, up_width=8)
 
 
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """Tiny tensors: one intra-op thread is faster and does not fight other test workers."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def test_size_chain_halves_rounding_up():
     assert size_chain((100, 60), 2) == [(25, 15), (50, 30), (100, 60)]
     assert size_chain((33, 17), 3) == [(5, 3), (9, 5), (17, 9), (33, 17)]
