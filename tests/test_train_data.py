@@ -186,3 +186,14 @@ def test_area_downsample_is_the_block_mean():
     assert np.array_equal(area_downsample(x, 2), np.array([[2.5, 4.5], [10.5, 12.5]], np.float32))
     with pytest.raises(ValueError, match="multiple"):
         area_downsample(np.zeros((5, 4)), 2)
+
+
+def test_linear_colour_decodes_images_and_targets_to_linear_light(data_dir):
+    from dofsynth.color import srgb_to_linear
+
+    raw = _raw(data_dir)
+    srgb = decode_sample(raw, resolve(tiny_config(), data_dir), sample_rng(0, 0, "train", 0))
+    lin = decode_sample(raw, resolve(tiny_config(data={"color": "linear"}), data_dir), sample_rng(0, 0, "train", 0))
+    for k in ("image", "target"):
+        assert torch.allclose(lin[k], torch.from_numpy(srgb_to_linear(srgb[k].numpy())), atol=1e-6)
+    assert torch.equal(lin["signed_lo"], srgb["signed_lo"])

@@ -86,6 +86,8 @@ def test_normalized_loss_by_hand():
     assert math.isclose(normalized_loss(x, y, alpha=0.0).item(), 3 / 4, rel_tol=1e-6)  # alpha 0: plain L1 mean
     total, jl, jh = deeplens_loss(x, y, x * 0, y * 0, beta=0.5)
     assert math.isclose(total.item(), jl.item() + 0.5 * jh.item(), rel_tol=1e-6)
+    with_l1, _, _ = deeplens_loss(x, y, x * 0, y * 0, beta=0.5, l1=2.0)   # + 2 * (mean|x| + 0.5 mean|y|)
+    assert math.isclose(with_l1.item(), total.item() + 2.0 * (6.5 / 4 + 0.5 * 3.5 / 4), rel_tol=1e-6)
 
 
 def test_zero_error_gives_zero_loss_and_finite_gradients():

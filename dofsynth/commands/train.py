@@ -13,7 +13,7 @@ def register(subparsers) -> None:
             "OUT/test for periodic evaluation). RUN receives config.toml (the resolved config), "
             "log.csv, ckpt.pt (model, optimizer, step, config, RNG states) and eval results. "
             "Running the same command again continues from the checkpoint. For several GPUs: "
-            "torchrun --nproc_per_node N -m dofsynth train ... --device cuda."
+            "torchrun --nproc_per_node N -m dofsynth -- train ... --device cuda (docs/training.md)."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )

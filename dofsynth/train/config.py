@@ -58,6 +58,7 @@ class LossConfig:
     alpha: float = 1.5    # J = sum|e|^(alpha+1) / sum|e|^alpha
     beta: float = 1.0     # loss = J(L) + beta * J(H)
     eps: float = 1e-8     # keeps J finite (and 0) when the error is zero
+    l1: float = 0.0       # optional extra weight of a plain L1 term (see dofsynth.train.loss)
 
 
 @dataclass(frozen=True)
@@ -172,6 +173,8 @@ def validate(cfg: Config, source: str = "<config>") -> None:
         raise ValueError(f"{source}: [model] feat_dilations must be non-empty and feat_channels >= 1")
     if t.dtype not in ("bfloat16", "float16", "float32"):
         raise ValueError(f"{source}: [train] dtype must be bfloat16, float16 or float32, got {t.dtype!r}")
+    if cfg.loss.alpha < 0 or cfg.loss.beta < 0 or cfg.loss.l1 < 0 or cfg.loss.eps <= 0:
+        raise ValueError(f"{source}: [loss] alpha, beta, l1 must be >= 0 and eps > 0")
     if t.max_steps < 0 or t.lr <= 0:
         raise ValueError(f"{source}: [train] max_steps must be >= 0 and lr > 0")
 

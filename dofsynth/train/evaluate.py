@@ -67,6 +67,7 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
     run_dir = Path(run_dir)
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     model, cfg = load_model(run_dir, device)
+    to_srgb = (lambda x: x) if cfg.data.color == "srgb" else linear_to_srgb
     items = []
     shards = find_shards(data_dir, split)
     samples = wds.tariterators.tarfile_samples({"url": u} for u in shards)
@@ -76,7 +77,6 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
         record = json.loads(raw["json"])
         for t in range(len(record["targets"])):
             item = decode_sample(raw, cfg, sample_rng(seed, t, split, int(record["index"])), crop=None, target=t)
-            to_srgb = (lambda x: x) if cfg.data.color == "srgb" else linear_to_srgb
             target = to_srgb(_hwc(item["target"]))
             image = _hwc(item["image"])
             with torch.inference_mode():

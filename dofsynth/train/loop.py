@@ -1,7 +1,7 @@
 """The training loop, in the manner of nanoGPT's train.py: one function, top to bottom.
 
     dofsynth train recipes/train-tiny.toml --data OUT --run RUN             # CPU or one GPU
-    torchrun --nproc_per_node 8 -m dofsynth train CONFIG --data OUT --run RUN --device cuda
+    torchrun --nproc_per_node 8 -m dofsynth -- train CONFIG --data OUT --run RUN --device cuda
 
 What happens: set up (distributed or not), resolve the config against the data and write it to
 RUN/config.toml, build the model and AdamW, resume from RUN/ckpt.pt if it exists, then step:
@@ -85,7 +85,7 @@ def evaluate(model, loader, cfg: Config, device, autocast) -> dict:
         b = to_device(batch, device)
         with autocast:
             low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"])
-        loss, _, _ = deeplens_loss(low, high, b["target_lo"], b["target"], cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps)
+        loss, _, _ = deeplens_loss(low, high, b["target_lo"], b["target"], cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps, cfg.loss.l1)
         totals += torch.stack([loss, psnr(high, b["target"]), torch.ones((), device=device)])
     if dist.is_initialized():
         dist.all_reduce(totals)
@@ -205,7 +205,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
         with autocast:
             low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"])
         loss, j_low, j_high = deeplens_loss(low, high, b["target_lo"], b["target"],
-                                            cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps)
+                                            cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps, cfg.loss.l1)
         scaler.scale(loss).backward()
         if t.grad_clip > 0:
             scaler.unscale_(optimizer)

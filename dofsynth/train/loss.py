@@ -7,6 +7,10 @@ more than an L1 loss would give them, and the value keeps the units of the image
 batch or image size. When X == Y it is exactly 0 and its gradient is 0 (|e|^a with a >= 1 is
 differentiable at 0), never NaN. Computed in float32 even under autocast.
 The training loss is J(L, T_lo) + beta * J(H, T).
+
+Note: J is a mean of |e| weighted by |e|^a, so adding errors smaller than J itself *lowers* J:
+it fights the large errors and tolerates many small ones (PSNR can lag behind). [loss] l1 > 0
+adds a plain mean absolute error term that also pushes the small errors down.
 """
 from __future__ import annotations
 
@@ -24,8 +28,15 @@ def normalized_loss(x: torch.Tensor, y: torch.Tensor, alpha: float = 1.5, eps: f
 
 
 def deeplens_loss(low, high, target_lo, target, alpha: float = 1.5, beta: float = 1.0,
-                  eps: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(total, J(L), J(H)) for L (B, 3, h, w) vs target_lo and H (B, 3, H, W) vs target."""
+                  eps: float = 1e-8, l1: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(total, J(L), J(H)) for L (B, 3, h, w) vs target_lo and H (B, 3, H, W) vs target.
+
+    total = J(L) + beta * J(H), plus l1 * (mean|L - T_lo| + beta * mean|H - T|) when l1 > 0.
+    """
     j_low = normalized_loss(low, target_lo, alpha, eps)
     j_high = normalized_loss(high, target, alpha, eps)
-    return j_low + beta * j_high, j_low, j_high
+    total = j_low + beta * j_high
+    if l1 > 0:
+        total = total + l1 * ((low.float() - target_lo.float()).abs().mean()
+                              + beta * (high.float() - target.float()).abs().mean())
+    return total, j_low, j_high
