@@ -1,41 +1,51 @@
-"""Make a data set: plan shards, render them (in worker processes), write the manifest last.
+"""Make a data set: plan shards, render them (with an executor), write the manifest last.
 
 The plan: per split, shards of `recipe.shard_size` consecutive sample indices (the last may be
 shorter); `limit` caps the samples of each split. A shard is made by the pure function
 `generate_shard(recipe, out, split, shard_index)`, whose output depends on nothing but the
 recipe (and the asset files it names), so sample i is the same bytes whatever the worker
-count, the machine, the order shards finish in, or a resume. Any executor can call it; here
-it runs in-process (`workers=1`) or in a `spawn` process pool, each worker building the asset
-library once.
+count, the machine, the executor, the order shards finish in, or a resume. Executors
+(`dofsynth.executors`: this process, a spawn pool, a Ray cluster) only distribute those calls;
+everything else is here, the same for all of them.
+
+The global shard plan of a run is `plan_shards(recipe, splits, limit)`: train's shards, then
+test's. `shard_range=(A, B)` (`--shards A:B`) makes only shards A..B-1 of it and writes the
+partial manifest `OUT/manifest.part-A-B.json`; disjoint ranges may run at once into one OUT
+(a job array on a shared file system); `dofsynth manifest merge OUT` joins the parts into the
+manifest.json a single run writes.
 
 Safety of the output folder `OUT`:
-- `OUT/.lock` (fcntl.flock, holder pid inside) refuses a second concurrent run into OUT.
-- Without `resume`, an OUT holding anything is refused (never silently mixed).
+- `OUT/.lock` (fcntl.flock) refuses a second concurrent run into OUT: a whole run holds it
+  exclusively (its pid inside), `--shards` runs hold it shared plus `OUT/.lock.part-A-B`
+  exclusively, and refuse a live overlapping range.
+- Without `resume`, an OUT holding anything is refused (never silently mixed); a `--shards`
+  run accepts only the work of other ranges of the same recipe and plan.
 - Shards appear under their final names only when complete; leftover temp files of a killed
-  run are removed at the start; `OUT/.progress.jsonl` lists finished shards while running.
+  run (or of a killed Ray task) are removed; `OUT/.progress.jsonl` (`.progress.part-A-B.jsonl`)
+  lists finished shards while running.
 - With `resume`, shards already there are verified (sha256 against the progress file or old
   manifest, else their sample keys) and kept; the rest are made; a resumed data set is
   byte-identical to an uninterrupted one.
-- `OUT/manifest.json` is written last, atomically; then the progress file is removed.
+- `OUT/manifest.json` (or the partial manifest) is written last, atomically; then the progress
+  file is removed.
 """
 from __future__ import annotations
 
 import fcntl
-import multiprocessing as mp
 import os
-import queue as queue_mod
+import re
 import resource
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from dofsynth import __version__
-from dofsynth.manifest import (MANIFEST_NAME, PROGRESS_NAME, append_progress, build_manifest, load_manifest,
-                               manifest_shard_infos, read_progress, remove_progress, start_progress,
-                               write_manifest)
-from dofsynth.shards import (ShardError, ShardInfo, ShardWriter, remove_temp_files, sample_key, shard_keys,
-                             shard_name, sha256_file)
+from dofsynth.manifest import (MANIFEST_NAME, PART_RE, PROGRESS_NAME, PROGRESS_PART_RE, append_progress,
+                               build_manifest, build_part, load_manifest, load_part, manifest_shard_infos,
+                               part_name, progress_part_name, read_progress, remove_progress, start_progress,
+                               write_manifest, write_part)
+from dofsynth.shards import (TEMP_MARK, ShardError, ShardInfo, ShardWriter, is_temp_name, remove_temp_files,
+                             sample_key, shard_keys, shard_name, sha256_file)
 
 SPLITS = ("train", "test")
 LOCK_NAME = ".lock"
@@ -105,16 +115,17 @@ def shard_task(recipe, split: str, shard_index: int, limit: int | None = None) -
 
 
 # ------------------------------------------------------------------------- making one shard
-_WORKER: dict = {"sha": None, "library": None, "recipe": None, "queue": None}
+_WORKER: dict = {"sha": None, "library": None}
 
 
 def _library_for(recipe):
     """The asset library of `recipe`, built once per process and reused for every shard."""
-    if _WORKER["sha"] != recipe.sha256 or _WORKER["library"] is None:
+    key = (recipe.sha256, getattr(recipe, "base_dir", ""))  # the same text elsewhere names other files
+    if _WORKER["sha"] != key or _WORKER["library"] is None:
         from dofsynth.assets import build_library
 
         _WORKER["library"] = build_library(recipe)
-        _WORKER["sha"] = recipe.sha256
+        _WORKER["sha"] = key
     return _WORKER["library"]
 
 
@@ -150,66 +161,68 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _init_worker(recipe, q) -> None:
-    import cv2
-
-    cv2.setNumThreads(1)  # one core per worker: no oversubscription
-    _WORKER["recipe"], _WORKER["queue"] = recipe, q
-    _library_for(recipe)
-
-
-def _worker_shard(out: str, split: str, shard_index: int, limit: int | None) -> tuple[ShardInfo, float, float]:
-    """Pool task: (ShardInfo, seconds spent on the shard, this worker's peak MiB so far)."""
-    q = _WORKER["queue"]
-    t0 = time.perf_counter()
-    info = generate_shard(_WORKER["recipe"], out, split, shard_index, limit=limit,
-                          on_sample=(lambda n: q.put(n)) if q is not None else None)
-    return info, time.perf_counter() - t0, peak_rss_mb()
-
-
-# ------------------------------------------------------------------------------ the lock
+# ------------------------------------------------------------------------------ the locks
 class OutputLock:
-    """`OUT/.lock`: an exclusive, non-blocking fcntl.flock holding the owner's pid.
+    """`OUT/.lock` (or `OUT/<name>`): a non-blocking fcntl.flock, exclusive (a whole run or a
+    merge; the holder's pid inside) or `shared` (the `--shards A:B` runs, which share OUT with
+    each other but never with a whole run or a merge).
 
-    The file is removed on release. A lock file left by a killed run is not a lock (the kernel
-    drops flock locks with their process), so it never blocks a later run.
+    An exclusive holder removes the file on release; a shared holder removes it only if it can
+    then lock it exclusively (it was the last one). A lock file left by a killed run is not a
+    lock (the kernel drops flock locks with their process), so it never blocks a later run.
+    On a shared file system across machines this needs flock support there (NFSv4, Lustre
+    mounted with `-o flock`, BeeGFS, GPFS); elsewhere it protects within one machine only.
     """
 
-    def __init__(self, out: str | os.PathLike):
+    def __init__(self, out: str | os.PathLike, name: str = LOCK_NAME, shared: bool = False):
         self.out = Path(out)
-        self.path = self.out / LOCK_NAME
+        self.path = self.out / name
+        self.shared = shared
         self.fd: int | None = None
 
     def acquire(self) -> "OutputLock":
         self.out.mkdir(parents=True, exist_ok=True)
+        mode = fcntl.LOCK_SH if self.shared else fcntl.LOCK_EX
         while True:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                fcntl.flock(fd, mode | fcntl.LOCK_NB)
             except BlockingIOError:
-                holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
+                holder = os.read(fd, 64).decode(errors="replace").strip()
                 os.close(fd)
-                raise OutputInUseError(
-                    f"{self.out}: another dofsynth run (pid {holder}) is writing into this folder "
-                    f"(it holds {self.path}); wait for it to finish or choose another --out") from None
-            try:  # the holder we waited on may have unlinked the file: lock the live one
-                same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
-            except FileNotFoundError:
-                same = False
-            if same:
+                raise OutputInUseError(self._busy(holder)) from None
+            if _same_file(self.path, fd):  # the holder we raced with may have unlinked it
                 break
             os.close(fd)
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
-        os.fsync(fd)
+        if not self.shared:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+            os.fsync(fd)
         self.fd = fd
         return self
+
+    def _busy(self, holder: str) -> str:
+        if holder:
+            who = f"another dofsynth run (pid {holder})"
+        else:
+            ranges = sorted(p.name for p in self.out.glob(f"{LOCK_NAME}.part-*"))
+            who = "dofsynth --shards runs" + (f" ({', '.join(ranges[:4])})" if ranges else "")
+        return (f"{self.out}: {who} {'is' if holder else 'are'} writing into this folder (lock {self.path}); "
+                "wait for it to finish or choose another --out")
 
     def release(self) -> None:
         if self.fd is None:
             return
         try:
-            self.path.unlink(missing_ok=True)
+            if self.shared:
+                try:  # the last shared holder removes the file
+                    fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    if _same_file(self.path, self.fd):
+                        self.path.unlink(missing_ok=True)
+                except BlockingIOError:
+                    pass
+            else:
+                self.path.unlink(missing_ok=True)
             fcntl.flock(self.fd, fcntl.LOCK_UN)
         finally:
             os.close(self.fd)
@@ -222,12 +235,82 @@ class OutputLock:
         self.release()
 
 
+def _same_file(path: Path, fd: int) -> bool:
+    try:
+        return os.stat(path).st_ino == os.fstat(fd).st_ino
+    except FileNotFoundError:
+        return False
+
+
+def range_lock_name(first: int, stop: int) -> str:
+    return f"{LOCK_NAME}.part-{first:06d}-{stop:06d}"
+
+
+class RangeLock:
+    """The locks of a `--shards A:B` run: `OUT/.lock` shared (no whole run or merge meanwhile)
+    and `OUT/.lock.part-A-B` exclusive (not the same range twice); then any other live range
+    lock that overlaps A:B is refused (two overlapping runs starting together both refuse)."""
+
+    def __init__(self, out: str | os.PathLike, first: int, stop: int):
+        self.out, self.first, self.stop = Path(out), first, stop
+        self.locks: list[OutputLock] = []
+
+    def acquire(self) -> "RangeLock":
+        try:
+            self.locks.append(OutputLock(self.out, shared=True).acquire())
+            own = OutputLock(self.out, range_lock_name(self.first, self.stop))
+            try:
+                self.locks.append(own.acquire())
+            except OutputInUseError as exc:
+                raise OutputInUseError(f"{self.out}: shards {self.first}:{self.stop} are being made by another "
+                                       f"run ({exc})") from None
+            for p in sorted(self.out.glob(f"{LOCK_NAME}.part-*")):
+                m = re.fullmatch(r"\.lock\.part-(\d+)-(\d+)", p.name)
+                if not m or p == own.path:
+                    continue
+                a, b = int(m[1]), int(m[2])
+                if a < self.stop and self.first < b and _held(p):
+                    raise OutputInUseError(f"{self.out}: --shards {self.first}:{self.stop} overlaps {a}:{b}, which "
+                                           f"a running dofsynth run holds ({p.name}); the ranges of one data set "
+                                           "must be disjoint")
+        except BaseException:
+            self.release()
+            raise
+        return self
+
+    def release(self) -> None:
+        while self.locks:
+            self.locks.pop().release()
+
+    def __enter__(self) -> "RangeLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _held(path: Path) -> bool:
+    """Whether some process holds an exclusive flock on `path`."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+
+
 # ------------------------------------------------------------------------------- the run
 @dataclass
 class GenerateResult:
     out: Path
-    manifest: dict
-    samples: int = 0             # samples in the finished data set
+    manifest: dict               # manifest.json's content, or the partial manifest of a --shards run
+    samples: int = 0             # samples in the finished data set (or range)
     shards: int = 0
     generated_samples: int = 0   # rendered by this run
     generated_shards: int = 0
@@ -238,6 +321,10 @@ class GenerateResult:
     skipped_assets: list = field(default_factory=list)
     peak_rss_mb: float = 0.0     # largest worker (or this process) peak resident memory
     shard_seconds: float = 0.0   # time spent inside generate_shard, summed over workers
+    executor: str = "local"
+    shard_range: tuple[int, int] | None = None   # a --shards run: its range of the plan ...
+    plan_shards: int = 0                          # ... of this many shards
+    part: Path | None = None                      # ... and its partial manifest
 
     @property
     def samples_per_second(self) -> float:
@@ -250,8 +337,12 @@ class GenerateResult:
 
     def summary_lines(self) -> list[str]:
         kept = f", {self.kept_shards} kept from before" if self.kept_shards else ""
-        lines = [
-            f"dofsynth generate: {self.out}",
+        lines = [f"dofsynth generate: {self.out} ({self.executor})"]
+        if self.shard_range is not None:
+            a, b = self.shard_range
+            lines.append(f"  range    shards {a}:{b} of {self.plan_shards}: partial manifest {self.part.name} "
+                         f"(when all ranges are done: dofsynth manifest merge {self.out})")
+        lines += [
             f"  samples  {self.samples} in {self.shards} shards ({self.generated_samples} rendered "
             f"in {self.generated_shards} shards{kept})",
             f"  time     {self.seconds:.1f} s, {self.samples_per_second:.2f} samples/s "
@@ -265,18 +356,42 @@ class GenerateResult:
         return lines
 
 
-def _skipped_assets(library) -> list:
+def _skipped_assets(library, recipe=None) -> list:
+    """The library's skipped files as [path, reason] lists, with the recipe's folder and its
+    asset folders written relative to the recipe's folder (`base_dir`), so that the manifest
+    does not depend on where the recipe and assets lie on this machine."""
     skipped = getattr(library, "skipped", None) or []
+    rel = _relativizer(recipe)
     out = []
     for s in skipped:
         if hasattr(s, "to_dict"):
             s = s.to_dict()
         elif isinstance(s, (tuple, list)):
-            s = [str(x) for x in s]
+            s = [rel(str(x)) for x in s]
         elif not isinstance(s, dict):
-            s = str(s)
+            s = rel(str(s))
         out.append(s)
     return out
+
+
+def _relativizer(recipe):
+    base = str(getattr(recipe, "base_dir", "") or "")
+    if not base:
+        return lambda text: text
+    assets = getattr(recipe, "assets", None)
+    roots = {base} | {str(r) for r in (getattr(assets, "backgrounds", None), getattr(assets, "foregrounds", None))
+                      if r and os.path.isabs(str(r))}
+    subs = []
+    for r in sorted(roots, key=len, reverse=True):  # longest first: an asset folder inside base
+        rp = os.path.relpath(r, base)
+        subs.append((r.rstrip(os.sep) + os.sep, "" if rp == "." else rp + os.sep))
+
+    def rel(text: str) -> str:
+        for a, b in subs:
+            text = text.replace(a, b)
+        return text
+
+    return rel
 
 
 def _entries(out: Path) -> list[str]:
@@ -289,6 +404,10 @@ def _previous_state(out: Path, recipe) -> tuple[dict[str, int | None], dict[str,
     manifest = load_manifest(out) if (out / MANIFEST_NAME).is_file() else None
     if header is None and manifest is None:
         leftovers = [n for n in _entries(out) if not n.startswith(".")]
+        if any(PART_RE.match(n) for n in leftovers):
+            raise ResumeError(f"{out}: holds partial manifests of --shards runs ({', '.join(leftovers[:3])}...); "
+                              f"finish those ranges with --shards A:B --resume and join them with "
+                              f"`dofsynth manifest merge {out}`, or choose a new --out folder")
         if leftovers:
             raise ResumeError(f"{out}: holds {', '.join(leftovers[:5])} but no {PROGRESS_NAME} or {MANIFEST_NAME}: "
                               "not a dofsynth data set; choose a new --out folder")
@@ -329,26 +448,107 @@ def _verify_existing(out: Path, task: ShardTask, known: dict[str, ShardInfo]) ->
         return None
 
 
+def _remove_temps(out: Path, paths: set[str] | None = None) -> list[str]:
+    """Delete leftover shard temp files ("<split>/.<name>.tmp-<pid>") of the shards `paths`
+    ("train/train-000001.tar", ...), or of every shard if None (only with OUT's exclusive lock).
+    A killed run, or a task killed mid-shard and retried by Ray, leaves them."""
+    removed = []
+    for s in SPLITS:
+        folder = out / s
+        if not folder.is_dir():
+            continue
+        for p in sorted(folder.iterdir()):
+            if not (p.is_file() and is_temp_name(p.name)):
+                continue
+            final = p.name[1:].split(TEMP_MARK)[0].split(".tmp")[0]
+            if paths is None or f"{s}/{final}" in paths:
+                p.unlink(missing_ok=True)
+                removed.append(f"{s}/{p.name}")
+    return removed
+
+
+def _make(recipe, out: Path, executor, tasks: list[ShardTask], todo: list[ShardTask], limits: dict,
+          record, progress: bool) -> tuple[float, float]:
+    """Render `todo` with `executor`, calling `record(info)` per finished shard, under one tqdm
+    bar over all `tasks` (those already made count as done). Returns (largest peak MiB of the
+    processes that rendered, seconds inside generate_shard summed over them)."""
+    total = sum(t.samples for t in tasks)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, initial=total - sum(t.samples for t in todo), unit="sample",
+                   desc=f"generate {out.name}", dynamic_ncols=True, smoothing=0.1)
+    size = {t.path: t.samples for t in todo}
+    shown: dict[str, int] = {}
+
+    def on_samples(path: str, n: int) -> None:  # never more than a shard's size (a Ray retry repeats)
+        now = min(size.get(path, 0), shown.get(path, 0) + n)
+        if bar is not None and now > shown.get(path, 0):
+            bar.update(now - shown.get(path, 0))
+        shown[path] = now
+
+    peak, busy = peak_rss_mb(), 0.0
+    try:
+        if todo:
+            for d in executor.run(recipe, out, todo, limits, on_samples=on_samples,
+                                  on_submitted=lambda: _library_for(recipe)):
+                on_samples(d.task.path, d.task.samples)
+                peak, busy = max(peak, d.peak_rss_mb), busy + d.seconds
+                record(d.info)
+    finally:
+        if bar is not None:
+            bar.close()
+    return peak, busy
+
+
+def _executor_for(executor, workers):
+    from dofsynth.executors import Executor, LocalExecutor
+
+    if executor is None:
+        return LocalExecutor(workers)
+    if not isinstance(executor, Executor):
+        raise TypeError(f"executor must be a dofsynth.executors.Executor, got {type(executor).__name__}")
+    return executor
+
+
+def parse_shard_range(text: str) -> tuple[int, int | None]:
+    """"A:B" (half-open, B > A >= 0) or "A:" (to the end of the plan) -> (A, B or None)."""
+    m = re.fullmatch(r"\s*(\d+)\s*:\s*(\d*)\s*", str(text))
+    if not m:
+        raise ValueError(f"--shards {text!r}: expected A:B (shards A .. B-1 of the plan, e.g. 0:10) or A:")
+    a, b = int(m[1]), (int(m[2]) if m[2] else None)
+    if b is not None and b <= a:
+        raise ValueError(f"--shards {text}: B must be greater than A (half-open range A:B)")
+    return a, b
+
+
 def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = None, resume: bool = False,
-             progress: bool = True) -> GenerateResult:
+             progress: bool = True, executor=None, shard_range: tuple[int, int | None] | None = None) -> GenerateResult:
     """Make (or with `resume`, finish or extend) the data set of `recipe` in folder `out`.
 
     `splits`: which splits to make; `limit`: at most this many samples per split (the first
     ones: sample i is the same with or without a limit, only the last shard may be shorter).
     With `resume`, splits an earlier run in `out` began are finished too (with their earlier
     limit unless listed in `splits`). `progress` shows a tqdm bar and prints a closing summary.
-    Returns a GenerateResult; raises OutputInUseError, OutputNotEmptyError or ResumeError (all
-    ValueError) for the folder problems described in the module docstring.
+    `executor`: a `dofsynth.executors.Executor` (default: `LocalExecutor(workers)`).
+    `shard_range=(A, B)`: make only shards A..B-1 of the plan (`plan_shards(recipe, splits,
+    limit)`: train's shards, then test's; B None or past the end: to the end) and write the
+    partial manifest `OUT/manifest.part-A-B.json` instead of `manifest.json` (see
+    `dofsynth.manifest.merge_parts`). Returns a GenerateResult; raises OutputInUseError,
+    OutputNotEmptyError or ResumeError (all ValueError) for the folder problems described in
+    the module docstring.
     """
     t0 = time.perf_counter()
     out = Path(out)
-    if int(workers) != workers or workers < 1:
-        raise ValueError(f"--workers must be an integer >= 1, got {workers}")
+    executor = _executor_for(executor, workers)
     splits = tuple(splits)
     for s in splits:
         split_size(recipe, s, limit)  # validates split and limit
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a folder")
+    if shard_range is not None:
+        return _generate_range(recipe, out, executor, splits, limit, resume, progress, shard_range, t0)
 
     with OutputLock(out):
         entries = _entries(out)
@@ -361,7 +561,7 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
         plan_splits = [s for s in SPLITS if s in limits]
         tasks = [t for s in plan_splits for t in plan_split(recipe, s, limits[s])]
 
-        removed = [str(p.relative_to(out)) for d in [out] + [out / s for s in SPLITS] for p in remove_temp_files(d)]
+        removed = [str(p.relative_to(out)) for p in remove_temp_files(out)] + _remove_temps(out)
         start_progress(out, {"recipe_sha256": recipe.sha256, "dofsynth_version": __version__,
                              "limits": {s: limits[s] for s in plan_splits}})
         (out / MANIFEST_NAME).unlink(missing_ok=True)  # rewritten last
@@ -384,36 +584,13 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
                         removed.append(f"{s}/{p.name}")
         kept = sum(len(v) for v in done.values())
 
-        in_process = workers == 1 or len(todo) <= 1
-        library = _library_for(recipe) if todo and in_process else None
-        total = sum(t.samples for t in tasks)
-        bar = None
-        if progress:
-            from tqdm import tqdm
+        def record(info: ShardInfo) -> None:
+            done[info.split].append(info)
+            append_progress(out, info)
 
-            bar = tqdm(total=total, initial=total - sum(t.samples for t in todo), unit="sample",
-                       desc=f"generate {out.name}", dynamic_ncols=True, smoothing=0.1)
-        peak, busy = peak_rss_mb(), 0.0
-        try:
-            if in_process:
-                for t in todo:
-                    ts = time.perf_counter()
-                    info = generate_shard(recipe, out, t.split, t.index, limit=limits[t.split], library=library,
-                                          on_sample=bar.update if bar else None)
-                    busy += time.perf_counter() - ts
-                    done[t.split].append(info)
-                    append_progress(out, info)
-                peak = max(peak, peak_rss_mb())
-            elif todo:
-                rss, busy = _run_pool(recipe, out, todo, limits, min(workers, len(todo)), done, bar)
-                peak = max(peak, rss)
-        finally:
-            if bar is not None:
-                bar.close()
-
-        if library is None:
-            library = _library_for(recipe)
-        skipped = _skipped_assets(library)
+        peak, busy = _make(recipe, out, executor, tasks, todo, limits, record, progress)
+        removed += _remove_temps(out)  # of attempts that died and were retried
+        skipped = _skipped_assets(_library_for(recipe), recipe)
         manifest = build_manifest(recipe, done, limits={s: limits[s] for s in plan_splits},
                                   extra={"skipped_assets": skipped})
         write_manifest(out, manifest)
@@ -423,53 +600,126 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
         out=out, manifest=manifest, samples=manifest["totals"]["samples"], shards=manifest["totals"]["shards"],
         generated_samples=sum(t.samples for t in todo), generated_shards=len(todo), kept_shards=kept,
         removed=removed, seconds=time.perf_counter() - t0, bytes=manifest["totals"]["bytes"],
-        skipped_assets=skipped, peak_rss_mb=peak, shard_seconds=busy)
+        skipped_assets=skipped, peak_rss_mb=peak, shard_seconds=busy, executor=executor.describe(),
+        plan_shards=len(tasks))
     if progress:
         print("\n".join(result.summary_lines()), flush=True)
     return result
 
 
-def _run_pool(recipe, out: Path, todo: list[ShardTask], limits, workers: int, done, bar) -> tuple[float, float]:
-    """Render `todo` in a spawn process pool and record each finished shard.
-    Returns (largest worker peak MiB, seconds spent in shards summed over workers)."""
-    ctx = mp.get_context("spawn")
-    q = ctx.Queue() if bar is not None else None
-    peak, busy = 0.0, 0.0
-    ex = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(recipe, q))
-    try:
-        futures = {ex.submit(_worker_shard, str(out), t.split, t.index, limits[t.split]): t for t in todo}
-        _library_for(recipe)  # for the manifest's skipped-asset list, while the workers start
-        pending = set(futures)
-        while pending:
-            finished, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
-            _drain(q, bar)
-            for f in finished:
-                t = futures[f]
-                try:
-                    info, seconds, rss = f.result()
-                except Exception as exc:
-                    if isinstance(exc, (ValueError, FileNotFoundError)):
-                        raise ValueError(f"shard {t.path}: {exc}") from exc
-                    raise RuntimeError(f"shard {t.path} failed: {exc!r}") from exc
-                peak, busy = max(peak, rss), busy + seconds
-                done[t.split].append(info)
-                append_progress(out, info)
-    except BaseException:
-        ex.shutdown(wait=False, cancel_futures=True)
-        raise
-    ex.shutdown(wait=True)
-    _drain(q, bar)
-    if bar is not None and bar.n != bar.total:
-        bar.n = bar.total
-        bar.refresh()
-    return peak, busy
+# ------------------------------------------------------------------- a range of the plan
+def _range_header(recipe, limits: dict, first: int, stop: int, total: int) -> dict:
+    return {"recipe_sha256": recipe.sha256, "dofsynth_version": __version__, "limits": limits,
+            "range": [first, stop], "shards": total}
 
 
-def _drain(q, bar) -> None:
-    while q is not None:
-        try:
-            n = q.get_nowait()
-        except (queue_mod.Empty, OSError, ValueError):
-            return
-        if bar is not None:
-            bar.update(n)
+def _check_shared_folder(out: Path, recipe, header: dict, tasks: list[ShardTask], resume: bool) -> None:
+    """What a --shards run accepts in OUT: other ranges of the same recipe and plan (their
+    shards, partial manifests, progress and lock files), and, with `resume`, its own earlier
+    work. Refuses the rest, naming it."""
+    first, stop = header["range"]
+    same = ("recipe_sha256", "dofsynth_version", "limits", "shards")
+    for name in _entries(out):
+        p = out / name
+        if name in SPLITS and p.is_dir() or name.startswith(LOCK_NAME) or is_temp_name(name):
+            continue  # temp files: another range's part or progress file being written
+        m = PART_RE.match(name) or PROGRESS_PART_RE.match(name)
+        if m:
+            a, b = int(m[1]), int(m[2])
+            if PART_RE.match(name):
+                part = load_part(p)
+                other = {"recipe_sha256": part["recipe"]["sha256"], "dofsynth_version": part["dofsynth_version"],
+                         "limits": part["plan"]["limits"], "shards": part["plan"]["shards"]}
+            else:
+                other = read_progress(out, name)[0]
+                if other is None:
+                    continue
+            if other.get("recipe_sha256") != header["recipe_sha256"]:
+                raise OutputNotEmptyError(f"{out}: holds {name}, made from another recipe (sha256 "
+                                          f"{str(other.get('recipe_sha256'))[:12]}..., not {recipe.path}); one folder "
+                                          "holds one data set: choose another --out")
+            if any(other.get(k) != header[k] for k in same):
+                raise OutputNotEmptyError(f"{out}: holds {name}, of another plan (dofsynth version, --split or --limit "
+                                          "differ); every --shards run into one OUT needs the same recipe and options")
+            if (a, b) == (first, stop):
+                if not resume:
+                    raise OutputNotEmptyError(f"{out}: shards {a}:{b} were made or begun here before ({name}); pass "
+                                              "--resume to verify and finish them")
+            elif a < stop and first < b:
+                raise OutputNotEmptyError(f"{out}: --shards {first}:{stop} overlaps {name} (shards {a}:{b}); the "
+                                          "ranges of one data set must be disjoint")
+            continue
+        if name == MANIFEST_NAME:
+            raise OutputNotEmptyError(f"{out}: holds a finished data set ({MANIFEST_NAME}); choose a new --out folder")
+        if name == PROGRESS_NAME:
+            raise OutputNotEmptyError(f"{out}: a whole run (without --shards) began here ({PROGRESS_NAME}); finish it "
+                                      "with --resume and no --shards, or choose a new --out folder")
+        raise OutputNotEmptyError(f"{out}: holds {name}, which is not part of a dofsynth data set made with "
+                                  "--shards; choose a new --out folder")
+    if not resume:
+        for t in tasks:
+            if (out / t.path).exists():
+                raise OutputNotEmptyError(f"{out}: {t.path} (in --shards {first}:{stop}) exists already; pass "
+                                          "--resume to verify and keep it")
+
+
+def _generate_range(recipe, out: Path, executor, splits, limit, resume, progress, shard_range, t0) -> GenerateResult:
+    splits = [s for s in SPLITS if s in splits]
+    limits = {s: limit for s in splits}
+    plan = plan_shards(recipe, splits, limit)
+    total = len(plan)
+    first, stop = shard_range
+    if first < 0 or (stop is not None and stop <= first):
+        raise ValueError(f"--shards {first}:{stop}: expected 0 <= A < B")
+    stop = total if stop is None else min(stop, total)
+    if first >= stop:
+        raise ValueError(f"--shards {shard_range[0]}:{'' if shard_range[1] is None else shard_range[1]}: the plan "
+                         f"of {recipe.path} ({'/'.join(splits)}, limit {limit}) has shards 0:{total}; this range "
+                         "holds none")
+    tasks = plan[first:stop]
+    own = {t.path for t in tasks}
+    header = _range_header(recipe, limits, first, stop, total)
+    pname, prog = part_name(first, stop), progress_part_name(first, stop)
+    with RangeLock(out, first, stop):
+        _check_shared_folder(out, recipe, header, tasks, resume)
+        known: dict[str, ShardInfo] = {}
+        if resume:
+            if (out / pname).is_file():
+                known.update({i.path: i for i in map(ShardInfo.from_dict, load_part(out / pname)["shards"])})
+            known.update({i.path: i for i in read_progress(out, prog)[1]})
+        removed = _remove_temps(out, own)
+        start_progress(out, header, prog)
+        (out / pname).unlink(missing_ok=True)  # rewritten last
+        done: list[ShardInfo] = []
+        todo: list[ShardTask] = []
+        for t in tasks:
+            info = _verify_existing(out, t, known) if resume else None
+            if info is not None:
+                done.append(info)
+                append_progress(out, info, prog)
+            else:
+                todo.append(t)
+        kept = len(done)
+
+        def record(info: ShardInfo) -> None:
+            done.append(info)
+            append_progress(out, info, prog)
+
+        peak, busy = _make(recipe, out, executor, tasks, todo, limits, record, progress)
+        removed += _remove_temps(out, own)
+        skipped = _skipped_assets(_library_for(recipe), recipe)
+        plan_info = {"splits": splits, "limits": limits, "shards": total,
+                     "split_shards": {s: sum(1 for t in plan if t.split == s) for s in splits}}
+        part = build_part(recipe, (first, stop), plan_info, done, extra={"skipped_assets": skipped})
+        path = write_part(out, part)
+        remove_progress(out, prog)
+
+    result = GenerateResult(
+        out=out, manifest=part, samples=sum(i.samples for i in done), shards=len(done),
+        generated_samples=sum(t.samples for t in todo), generated_shards=len(todo), kept_shards=kept,
+        removed=removed, seconds=time.perf_counter() - t0, bytes=sum(i.bytes for i in done),
+        skipped_assets=skipped, peak_rss_mb=peak, shard_seconds=busy, executor=executor.describe(),
+        shard_range=(first, stop), plan_shards=total, part=path)
+    if progress:
+        print("\n".join(result.summary_lines()), flush=True)
+    return result

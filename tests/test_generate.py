@@ -1,6 +1,7 @@
 """generate: plan, determinism across workers, kill + resume, the lock, refusing a used folder."""
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -230,3 +231,142 @@ def test_webdataset_reads_the_whole_data_set(reference):
         for g in got:
             d = decode_sample(g)
             assert d["record"]["key"] == g["__key__"] and d["record"]["split"] == split
+
+
+# ------------------------------------------------------------ --shards A:B and manifest merge
+def _merge(*argv) -> int:
+    return main(["manifest", "merge", *map(str, argv), "--quiet"])
+
+
+def test_plan_prints_the_global_shard_numbers(recipe, capsys):
+    assert main(["generate", str(SMOKE), "--plan"]) == 0
+    text = capsys.readouterr().out
+    n_train = len(plan_split(recipe, "train"))
+    assert f"train --shards 0:{n_train}" in text and f"test  --shards {n_train}:" in text
+
+
+def test_shard_ranges_then_merge_equal_a_full_run(recipe, reference, tmp_path):
+    """A job array of ranges of K=1 and K=2 shards into one shared OUT, run in a shuffled order
+    (the last range past the end of the plan is clipped), merged: the same folder as one run."""
+    out = tmp_path / "array"
+    total = len(plan_split(recipe, "train")) + len(plan_split(recipe, "test"))
+    ranges = [(0, 1), (1, 3)] + [(i, i + 2) for i in range(3, total, 2)]
+    for a, b in reversed(ranges):
+        assert main(["generate", str(SMOKE), "--out", str(out), "--shards", f"{a}:{b}", "--resume", "--quiet"]) == 0
+    parts = sorted(p.name for p in out.glob("manifest.part-*.json"))
+    assert len(parts) == len(ranges) and f"manifest.part-000003-{min(5, total):06d}.json" in parts
+    assert not (out / "manifest.json").exists()
+    # a whole run, or a run of another recipe, cannot mix into a folder of ranges
+    with pytest.raises(OutputNotEmptyError):
+        generate(recipe, out, progress=False)
+    other = recipe_from_text(recipe.text.replace(f"seed = {recipe.seed}", f"seed = {recipe.seed + 1}"),
+                             "other.toml", SMOKE.parent)
+    with pytest.raises(OutputNotEmptyError, match="another recipe"):
+        generate(other, tmp_path / "array", shard_range=(0, 1), resume=True, progress=False)
+    with pytest.raises(OutputNotEmptyError, match="overlaps"):
+        generate(recipe, out, shard_range=(1, 2), progress=False)
+    assert _merge(out) == 0
+    assert _files(out) == _files(reference[0])
+
+
+def test_shard_range_resume_after_kill_and_refusals(recipe, reference, tmp_path, capsys):
+    out = tmp_path / "range"
+    res = generate(recipe, out, shard_range=(1, 3), progress=False)
+    assert res.shard_range == (1, 3) and res.part.name == "manifest.part-000001-000003.json"
+    assert res.manifest["range"] == [1, 3] and [s["index"] for s in res.manifest["shards"]] == [1, 2]
+    # the same range again needs --resume; with it, nothing is rendered
+    assert main(["generate", str(SMOKE), "--out", str(out), "--shards", "1:3", "--quiet"]) == 2
+    assert "--resume" in capsys.readouterr().err
+    (out / "train" / "train-000002.tar").unlink()                      # lost ...
+    (out / "train" / ".train-000001.tar.tmp-4242").write_bytes(b"x")   # ... and a dead attempt's temp
+    (out / "train" / ".train-000000.tar.tmp-4243").write_bytes(b"y")   # another range's temp: not ours
+    again = generate(recipe, out, shard_range=(1, 3), resume=True, progress=False)
+    assert (again.kept_shards, again.generated_shards) == (1, 1)
+    assert again.removed == ["train/.train-000001.tar.tmp-4242"]
+    (out / "train" / ".train-000000.tar.tmp-4243").unlink()
+    assert again.part.read_bytes() == res.part.read_bytes()
+    with pytest.raises(ValueError, match="holds none"):
+        generate(recipe, out, shard_range=(99, 100), progress=False)
+    for bad in ("3:1", "x", "1-2"):
+        assert main(["generate", str(SMOKE), "--out", str(out), "--shards", bad, "--quiet"]) == 2
+        assert "--shards" in capsys.readouterr().err
+    generate(recipe, out, shard_range=(0, 1), progress=False)
+    generate(recipe, out, shard_range=(3, None), progress=False)
+    assert _merge(out) == 0 and _files(out) == _files(reference[0])
+
+
+def test_concurrent_disjoint_ranges_share_out_but_not_with_a_whole_run(recipe, tmp_path):
+    from dofsynth.generate import RangeLock
+
+    out = tmp_path / "shared"
+    with RangeLock(out, 0, 2):       # a running --shards 0:2 (say on another node)
+        assert (out / ".lock.part-000000-000002").is_file()
+        generate(recipe, out, shard_range=(2, 4), progress=False)          # disjoint: fine
+        with pytest.raises(OutputInUseError, match="overlaps 0:2"):
+            generate(recipe, out, shard_range=(1, 3), progress=False)
+        with pytest.raises(OutputInUseError, match="same|being made"):
+            generate(recipe, out, shard_range=(0, 2), resume=True, progress=False)
+        with pytest.raises(OutputInUseError, match="--shards runs"):
+            generate(recipe, out, resume=True, progress=False)
+        assert _merge(out) == 2      # merging waits for the running ranges
+        assert (out / ".lock").exists()  # still held (shared) by the running range
+    assert not (out / ".lock").exists() and not (out / ".lock.part-000000-000002").exists()
+
+
+def test_merge_refuses_overlaps_gaps_and_mixed_recipes(recipe, tmp_path, capsys):
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    pa = generate(recipe, a, shard_range=(0, 2), progress=False).part
+    pb = generate(recipe, b, shard_range=(1, None), progress=False).part      # overlaps pa at shard 1
+    pc = generate(recipe, c, shard_range=(3, None), progress=False).part      # leaves shard 2 out
+    other = recipe_from_text(recipe.text.replace(f"seed = {recipe.seed}", f"seed = {recipe.seed + 1}"),
+                             "other.toml", SMOKE.parent)
+    pd = generate(other, tmp_path / "d", shard_range=(2, None), progress=False).part
+    cases = [((pa, pb), ["overlap", pa.name, pb.name, "1:2"]),
+             ((pc, pa), ["gap", "2:3", pa.name, pc.name]),
+             ((pa,), ["gap", "2:4", pa.name]),
+             ((pc,), ["gap", "0:3", pc.name]),
+             ((pa, pd), ["mixed recipes", str(pa), str(pd)])]
+    for parts, words in cases:
+        assert _merge(*parts, "--out", tmp_path / "m" / "manifest.json") == 2
+        err = capsys.readouterr().err
+        assert all(w in err for w in words), (words, err)
+    assert not (tmp_path / "m").exists() or not (tmp_path / "m" / "manifest.json").exists()
+    # parts in one folder, with a shard missing there
+    assert _merge(pa, "--keep-parts") == 2
+    assert "gap" in capsys.readouterr().err
+    shutil.copy(pc, a / pc.name)   # its shard test/test-000000.tar stays in c
+    generate(recipe, a, shard_range=(2, 3), progress=False)
+    assert _merge(a) == 2
+    assert "test-000000.tar" in capsys.readouterr().err and pa.exists() and not (a / "manifest.json").exists()
+    shutil.copytree(c / "test", a / "test", dirs_exist_ok=True)
+    assert _merge(a) == 0 and not pa.exists() and load_manifest(a)["totals"]["shards"] == 4
+
+
+def test_missing_ray_says_how_to_install(monkeypatch, tmp_path, capsys):
+    from dofsynth.executors import make_executor
+
+    monkeypatch.setitem(sys.modules, "ray", None)   # import ray -> ImportError
+    with pytest.raises(ValueError, match=r"pip install 'dofsynth\[ray\]'"):
+        make_executor("ray")
+    assert main(["generate", str(SMOKE), "--out", str(tmp_path / "o"), "--executor", "ray", "--quiet"]) == 2
+    assert "pip install 'dofsynth[ray]'" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def test_skipped_assets_are_relative_to_the_recipe_folder(tmp_path, monkeypatch):
+    """The same recipe and assets in two places give byte-identical manifests."""
+    from conftest import RECIPE_TEMPLATE, noise_rgb, write_png
+
+    manifests = []
+    for where in (tmp_path / "one", tmp_path / "two" / "deeper"):
+        write_png(where / "bg" / "a.png", noise_rgb(80, 96, 1))
+        write_png(where / "bg" / "b.png", noise_rgb(80, 96, 2))
+        (where / "bg" / "broken.png").write_bytes(b"not a png")
+        text = RECIPE_TEMPLATE.format(size=32, backgrounds="bg", foregrounds="builtin", on_bad_asset="skip",
+                                      verify="decode", manifest="")
+        (where / "r.toml").write_text(text.replace("test = 2", "test = 0"), encoding="utf-8")
+        monkeypatch.chdir(where)
+        res = generate(load_recipe("r.toml"), "out", limit=1, progress=False)
+        assert len(res.skipped_assets) == 1 and res.skipped_assets[0][0] == "bg/broken.png"
+        assert str(tmp_path) not in json.dumps(res.manifest["skipped_assets"])
+        manifests.append((where / "out" / "manifest.json").read_bytes())
+    assert manifests[0] == manifests[1]

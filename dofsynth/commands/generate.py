@@ -8,8 +8,8 @@ DESCRIPTION = """\
 Render the data set a recipe describes into OUT: WebDataset tar shards OUT/train/*.tar and
 OUT/test/*.tar (each sample: aif.png, depth.exr, cover.png, dof.N.png, json; see docs/FORMAT.md)
 and OUT/manifest.json, written last. Sample i of a recipe is the same bytes whatever --workers,
-the machine, or an interruption and --resume. OUT must be new or empty unless --resume is given;
-a second run into the same OUT while one is running is refused (OUT/.lock).
+--executor, the machine, or an interruption and --resume. OUT must be new or empty unless
+--resume is given; a second run into the same OUT while one is running is refused (OUT/.lock).
 """
 
 EPILOG = """\
@@ -18,12 +18,17 @@ examples:
   dofsynth generate recipes/deeplens-18k.toml --out /data/dl18k --limit 100   # a quick look
   dofsynth generate recipes/deeplens-18k.toml --out /data/dl18k --resume      # then the rest
   dofsynth generate recipes/demo.toml --out out/demo --save-summary data_manifest/datasets/demo.json
+  dofsynth generate recipes/deeplens-18k.toml --out /shared/dl18k --executor ray --address auto
+  dofsynth generate recipes/deeplens-18k.toml --out /shared/dl18k --shards 0:20 --resume   # one job of an array
+  dofsynth manifest merge /shared/dl18k                                                   # then join the parts
 
 --limit N keeps the first N samples of each split (indices 0..N-1, identical to the same samples
 of a full run; only the last shard may be shorter). --resume keeps every shard already written
 and verified (sha256), makes the missing ones, removes leftovers of a killed run, and finishes
 splits an earlier run began; the result equals an uninterrupted run with the same options.
-See docs/generate.md.
+--shards A:B makes shards A..B-1 of the run's plan (train's shards, then test's; --plan prints
+it) and writes OUT/manifest.part-A-B.json; disjoint ranges may run at once into one OUT.
+See docs/generate.md ("Running a large job").
 """
 
 
@@ -52,9 +57,24 @@ def register(subparsers) -> None:
         "generate", help="render a recipe's data set into WebDataset shards and a manifest",
         description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("recipe", metavar="RECIPE", help="the recipe TOML file (e.g. recipes/demo.toml)")
-    p.add_argument("--out", required=True, metavar="OUT", help="data set folder to create (new or empty, or with --resume)")
-    p.add_argument("--workers", type=_positive_int, default=1, metavar="N",
-                   help="worker processes, each rendering whole shards (default 1; about one per core)")
+    p.add_argument("--out", metavar="OUT", help="data set folder to create (new or empty, or with --resume); required "
+                   "unless --plan")
+    p.add_argument("--workers", type=_positive_int, default=None, metavar="N",
+                   help="local: worker processes, each rendering whole shards (default 1; about one per core); "
+                        "ray: at most N shard tasks at once (default: as many as the cluster's CPUs run)")
+    p.add_argument("--executor", choices=("local", "ray"), default="local",
+                   help="local: this machine (default); ray: one Ray task per shard on a Ray cluster "
+                        "(needs: pip install 'dofsynth[ray]')")
+    p.add_argument("--address", default=None, metavar="ADDR",
+                   help="with --executor ray: the cluster to join ('auto' for the one `ray start --head` made on "
+                        "this node, or HOST:PORT); default: start a local Ray instance for this run")
+    p.add_argument("--max-retries", type=_count, default=3, metavar="N",
+                   help="with --executor ray: retries of a shard task whose worker died (default 3)")
+    p.add_argument("--shards", default=None, metavar="A:B",
+                   help="make only shards A..B-1 of the plan (half-open; train's shards, then test's; 'A:' to the "
+                        "end) and write OUT/manifest.part-A-B.json; join the parts with `dofsynth manifest merge`")
+    p.add_argument("--plan", action="store_true",
+                   help="print the shard plan (global shard numbers per split, for --shards) and exit")
     p.add_argument("--split", choices=("train", "test", "all"), default="all",
                    help="which split to make (default all)")
     p.add_argument("--limit", type=_count, default=None, metavar="N",
@@ -68,17 +88,44 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def print_plan(recipe, splits, limit) -> None:
+    from dofsynth.generate import plan_shards
+
+    tasks = plan_shards(recipe, splits, limit)
+    print(f"{recipe.path}: {len(tasks)} shards of up to {recipe.shard_size} samples"
+          + (f" (limit {limit} per split)" if limit is not None else ""))
+    g = 0
+    for s in splits:
+        mine = [t for t in tasks if t.split == s]
+        print(f"  {s:5s} --shards {g}:{g + len(mine)}  ({sum(t.samples for t in mine)} samples)")
+        g += len(mine)
+    print(f"  total {len(tasks)}")
+
+
 def run(args) -> int:
     from dofsynth.config import load_recipe
-    from dofsynth.generate import SPLITS, generate
+    from dofsynth.executors import make_executor
+    from dofsynth.generate import SPLITS, generate, parse_shard_range
     from dofsynth.manifest import save_summary
 
     if args.save_summary is not None and args.save_summary.suffix != ".json":
         raise ValueError(f"--save-summary {args.save_summary}: the summary file must end in .json")
+    shard_range = parse_shard_range(args.shards) if args.shards is not None else None
+    if shard_range is not None and args.save_summary is not None:
+        raise ValueError("--save-summary needs the whole data set: pass it to `dofsynth manifest merge`, not to a "
+                         "--shards run")
+    if args.executor != "ray" and (args.address is not None or args.max_retries != 3):
+        raise ValueError("--address and --max-retries are for --executor ray")
     recipe = load_recipe(args.recipe)
     splits = SPLITS if args.split == "all" else (args.split,)
-    result = generate(recipe, args.out, workers=args.workers, splits=splits, limit=args.limit,
-                      resume=args.resume, progress=not args.quiet)
+    if args.plan:
+        print_plan(recipe, splits, args.limit)
+        return 0
+    if not args.out:
+        raise ValueError("--out OUT is required (the data set folder)")
+    executor = make_executor(args.executor, workers=args.workers, address=args.address, max_retries=args.max_retries)
+    result = generate(recipe, args.out, splits=splits, limit=args.limit, resume=args.resume,
+                      progress=not args.quiet, executor=executor, shard_range=shard_range)
     if args.save_summary is not None:
         path = save_summary(result.manifest, args.save_summary)
         if not args.quiet:

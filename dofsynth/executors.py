@@ -1,0 +1,278 @@
+"""Executors: who renders the shards of a `generate` run.
+
+One small interface: `Executor.run(recipe, out, tasks, limits, on_samples, on_submitted)`
+submits one call of the pure `generate_shard` per `ShardTask` and yields a `ShardDone` per
+finished shard, in any order. Everything else (the plan, the lock, the progress file and bar,
+resume, the manifest and the summary) stays in `dofsynth.generate`, the same for every executor.
+
+- `LocalExecutor(workers)`: in this process (workers=1) or a `spawn` process pool, each worker
+  building the asset library once; progress is reported per sample.
+- `RayExecutor(address, max_retries, max_in_flight)`: one Ray task per shard on a local or
+  remote Ray cluster (`pip install 'dofsynth[ray]'`); a task whose worker dies (killed, out of
+  memory, node lost) is retried up to `max_retries` times, the retry rewriting the shard from
+  scratch (a shard reaches its final name only when complete, so a dead attempt leaves at most
+  a temp file, which the driver removes). Progress is reported per finished shard. Every node
+  must see `OUT` at the same path (a shared file system) and have the same dofsynth installed.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue as queue_mod
+import signal
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+
+from dofsynth.generate import ShardTask, _library_for, generate_shard, peak_rss_mb
+from dofsynth.shards import ShardInfo
+
+EXECUTORS = ("local", "ray")
+RAY_INSTALL_HINT = "pip install 'dofsynth[ray]'  (or: pip install 'ray>=2.9')"
+# Test hook: in a Ray task, if the file <dir>/<split>-<shard:06d>.kill exists once the shard's
+# first sample is written, the task deletes it and SIGKILLs its own worker (the retry goes on).
+KILL_HOOK_ENV = "DOFSYNTH_TEST_KILL_DIR"
+
+OnSamples = Callable[[str, int], None]   # (shard path, samples just written)
+
+
+@dataclass(frozen=True)
+class ShardDone:
+    """A finished shard: its task, its ShardInfo, seconds inside `generate_shard`, and the
+    peak resident memory (MiB, ru_maxrss) of the process that made it."""
+
+    task: ShardTask
+    info: ShardInfo
+    seconds: float
+    peak_rss_mb: float
+
+
+class Executor:
+    """Runs shard tasks; see the module docstring."""
+
+    name = "executor"
+
+    def describe(self) -> str:
+        return self.name
+
+    def run(self, recipe, out: Path, tasks: list[ShardTask], limits: dict, on_samples: OnSamples | None = None,
+            on_submitted: Callable[[], None] | None = None) -> Iterator[ShardDone]:
+        """Make every task's shard in `out`; yield a ShardDone per finished shard. Calls
+        `on_samples(path, n)` as samples are written (as often as the executor knows) and
+        `on_submitted()` once the tasks are handed out (the driver's own set-up can overlap).
+        Raises ValueError for a user error inside a task (naming the shard), RuntimeError for
+        a task that failed otherwise; tasks still pending are cancelled."""
+        raise NotImplementedError
+
+
+def _shard_error(task: ShardTask, exc: BaseException) -> Exception:
+    if isinstance(exc, (ValueError, FileNotFoundError)):
+        return ValueError(f"shard {task.path}: {exc}")
+    return RuntimeError(f"shard {task.path} failed: {exc!r}")
+
+
+# ----------------------------------------------------------------------------------- local
+_POOL: dict = {"recipe": None, "queue": None}
+
+
+def _init_worker(recipe, q) -> None:
+    import cv2
+
+    cv2.setNumThreads(1)  # one core per worker: no oversubscription
+    _POOL["recipe"], _POOL["queue"] = recipe, q
+    _library_for(recipe)
+
+
+def _worker_shard(out: str, task: ShardTask, limit: int | None) -> tuple[ShardInfo, float, float]:
+    """Pool task: (ShardInfo, seconds spent on the shard, this worker's peak MiB so far)."""
+    q = _POOL["queue"]
+    t0 = time.perf_counter()
+    info = generate_shard(_POOL["recipe"], out, task.split, task.index, limit=limit,
+                          on_sample=(lambda n: q.put((task.path, n))) if q is not None else None)
+    return info, time.perf_counter() - t0, peak_rss_mb()
+
+
+class LocalExecutor(Executor):
+    """This machine: in-process for one worker (or one task), else a spawn process pool."""
+
+    name = "local"
+
+    def __init__(self, workers: int = 1):
+        if int(workers) != workers or workers < 1:
+            raise ValueError(f"--workers must be an integer >= 1, got {workers}")
+        self.workers = int(workers)
+
+    def describe(self) -> str:
+        return f"local, {self.workers} worker{'s' if self.workers != 1 else ''}"
+
+    def run(self, recipe, out, tasks, limits, on_samples=None, on_submitted=None):
+        if self.workers == 1 or len(tasks) <= 1:
+            yield from self._in_process(recipe, out, tasks, limits, on_samples, on_submitted)
+        else:
+            yield from self._pool(recipe, out, tasks, limits, on_samples, on_submitted)
+
+    @staticmethod
+    def _in_process(recipe, out, tasks, limits, on_samples, on_submitted):
+        library = _library_for(recipe) if tasks else None
+        if on_submitted is not None:
+            on_submitted()
+        for t in tasks:
+            ts = time.perf_counter()
+            try:
+                info = generate_shard(recipe, out, t.split, t.index, limit=limits[t.split], library=library,
+                                      on_sample=(lambda n, p=t.path: on_samples(p, n)) if on_samples else None)
+            except (ValueError, FileNotFoundError) as exc:
+                raise _shard_error(t, exc) from exc
+            yield ShardDone(t, info, time.perf_counter() - ts, peak_rss_mb())
+
+    def _pool(self, recipe, out, tasks, limits, on_samples, on_submitted):
+        ctx = mp.get_context("spawn")
+        q = ctx.Queue() if on_samples is not None else None
+        ex = ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)), mp_context=ctx,
+                                 initializer=_init_worker, initargs=(recipe, q))
+
+        def drain():
+            while q is not None:
+                try:
+                    path, n = q.get_nowait()
+                except (queue_mod.Empty, OSError, ValueError):
+                    return
+                on_samples(path, n)
+
+        try:
+            futures = {ex.submit(_worker_shard, str(out), t, limits[t.split]): t for t in tasks}
+            if on_submitted is not None:
+                on_submitted()
+            pending = set(futures)
+            while pending:
+                finished, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
+                drain()
+                for f in finished:
+                    t = futures[f]
+                    try:
+                        info, seconds, rss = f.result()
+                    except Exception as exc:
+                        raise _shard_error(t, exc) from exc
+                    yield ShardDone(t, info, seconds, rss)
+        except BaseException:
+            ex.shutdown(wait=False, cancel_futures=True)
+            raise
+        ex.shutdown(wait=True)
+        drain()
+
+
+# ------------------------------------------------------------------------------------- ray
+def ray_available() -> bool:
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _kill_hook(split: str, index: int):
+    """The test hook of KILL_HOOK_ENV as an on_sample callback (None when not armed)."""
+    folder = os.environ.get(KILL_HOOK_ENV)
+    if not folder:
+        return None
+    arm = Path(folder) / f"{split}-{index:06d}.kill"
+
+    def hook(_n: int) -> None:
+        try:
+            arm.unlink()  # claim it: only one attempt dies
+        except FileNotFoundError:
+            return
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    return hook
+
+
+def _ray_shard(recipe, out: str, split: str, index: int, limit: int | None) -> tuple[ShardInfo, float, float]:
+    """Ray task: (ShardInfo, seconds inside generate_shard, this worker's peak MiB so far).
+    Ray reuses worker processes, so the asset library is built once per worker."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    t0 = time.perf_counter()
+    info = generate_shard(recipe, out, split, index, limit=limit, on_sample=_kill_hook(split, index))
+    return info, time.perf_counter() - t0, peak_rss_mb()
+
+
+class RayExecutor(Executor):
+    """One Ray task per shard. `address`: None starts a local Ray instance for this run (unless
+    Ray is already initialised in this process), "auto" or "HOST:PORT" joins a running cluster
+    (`ray start --head`). `max_retries`: retries of a task whose worker died.
+    `max_in_flight`: at most this many shard tasks submitted at once (None: all; Ray runs one
+    per free CPU)."""
+
+    name = "ray"
+
+    def __init__(self, address: str | None = None, max_retries: int = 3, max_in_flight: int | None = None):
+        if not ray_available():
+            raise ValueError(f"--executor ray needs Ray, which is not installed; install it with: {RAY_INSTALL_HINT}")
+        if int(max_retries) != max_retries or max_retries < 0:
+            raise ValueError(f"--max-retries must be an integer >= 0, got {max_retries}")
+        if max_in_flight is not None and (int(max_in_flight) != max_in_flight or max_in_flight < 1):
+            raise ValueError(f"--workers must be an integer >= 1, got {max_in_flight}")
+        self.address, self.max_retries, self.max_in_flight = address, int(max_retries), max_in_flight
+
+    def describe(self) -> str:
+        return f"ray{' ' + self.address if self.address else ''}, max {self.max_retries} retries"
+
+    def run(self, recipe, out, tasks, limits, on_samples=None, on_submitted=None):
+        import ray
+
+        own = not ray.is_initialized()
+        if own:
+            ray.init(address=self.address, include_dashboard=False, logging_level="WARNING")
+        remote = ray.remote(num_cpus=1, max_retries=self.max_retries, retry_exceptions=False)(_ray_shard)
+        recipe_ref = ray.put(recipe)
+        window = self.max_in_flight or len(tasks) or 1
+        todo, refs = list(tasks), {}
+        try:
+            def submit():
+                while todo and len(refs) < window:
+                    t = todo.pop(0)
+                    refs[remote.remote(recipe_ref, str(out), t.split, t.index, limits[t.split])] = t
+
+            submit()
+            if on_submitted is not None:
+                on_submitted()
+            while refs:
+                ready, _ = ray.wait(list(refs), num_returns=1)
+                for ref in ready:
+                    t = refs.pop(ref)
+                    try:
+                        info, seconds, rss = ray.get(ref)
+                    except ray.exceptions.RayTaskError as exc:  # an exception inside generate_shard
+                        raise _shard_error(t, getattr(exc, "cause", None) or exc) from exc
+                    except ray.exceptions.RayError as exc:       # worker or node died, retries used up
+                        raise RuntimeError(f"shard {t.path} failed after {self.max_retries} retries: {exc}; "
+                                           "rerun with --resume to keep the finished shards") from exc
+                    if on_samples is not None:
+                        on_samples(t.path, info.samples)
+                    yield ShardDone(t, info, seconds, rss)
+                submit()
+        finally:
+            for ref in refs:
+                try:
+                    ray.cancel(ref, force=True)
+                except Exception:
+                    pass
+            if own:
+                ray.shutdown()
+
+
+def make_executor(name: str = "local", *, workers: int | None = None, address: str | None = None,
+                  max_retries: int = 3) -> Executor:
+    """The executor the command line names. `workers`: local processes (default 1) or, for Ray,
+    the most shard tasks in flight at once (default: all)."""
+    if name == "local":
+        if address is not None:
+            raise ValueError("--address is for --executor ray")
+        return LocalExecutor(1 if workers is None else workers)
+    if name == "ray":
+        return RayExecutor(address=address, max_retries=max_retries, max_in_flight=workers)
+    raise ValueError(f"--executor {name!r}: expected one of {', '.join(EXECUTORS)}")
