@@ -82,3 +82,57 @@ def test_progress_survives_a_torn_last_line(tmp_path):
     assert header == {"recipe_sha256": "ab" * 32}
     assert infos == _infos()["train"]
     assert read_progress(tmp_path / "nothing") == (None, [])
+
+
+# ---- partial manifests ---------------------------------------------------------------------
+from dofsynth.manifest import build_part, load_part, merge_parts, part_name, write_part  # noqa: E402
+
+_PLAN = {"splits": ["train", "test"], "limits": {"train": None, "test": None}, "shards": 4,
+         "split_shards": {"train": 3, "test": 1}}
+
+
+def _all_infos():
+    return [ShardInfo("train", 0, "train-000000.tar", 0, 2, "11" * 32, 200),
+            ShardInfo("train", 1, "train-000001.tar", 2, 2, "22" * 32, 300),
+            ShardInfo("train", 2, "train-000002.tar", 4, 1, "55" * 32, 150),
+            ShardInfo("test", 0, "test-000000.tar", 0, 2, "33" * 32, 100)]
+
+
+def _write_parts(folder, ranges, recipe=None, plan=None):
+    infos = _all_infos()
+    return [write_part(folder, build_part(recipe or _recipe(), (a, b), plan or _PLAN, infos[a:b],
+                                          extra={"skipped_assets": []})) for a, b in ranges]
+
+
+def test_merged_parts_equal_the_single_run_manifest(tmp_path):
+    whole = build_manifest(_recipe(), {"train": _all_infos()[:3], "test": _all_infos()[3:]},
+                           limits={"train": None, "test": None}, extra={"skipped_assets": []})
+    paths = _write_parts(tmp_path, [(2, 4), (0, 1), (1, 2)])
+    assert [p.name for p in paths][0] == part_name(2, 4) == "manifest.part-000002-000004.json"
+    assert canonical_json(merge_parts(paths), indent=1) == canonical_json(whole, indent=1)
+    assert load_part(paths[0])["range"] == [2, 4]
+
+
+def test_merge_names_overlaps_gaps_and_mixed_parts(tmp_path):
+    a, b, c = (tmp_path / n for n in "abc")
+    p01, p04 = _write_parts(a, [(0, 1), (0, 4)])
+    p24, = _write_parts(b, [(2, 4)])
+    with pytest.raises(ManifestError, match=rf"overlap: .*{p01.name}.*{p04.name}.* shards 0:1 are in both"):
+        merge_parts([p04, p01])
+    with pytest.raises(ManifestError, match=rf"gap: shards 1:2 of the plan's 4 are in no part \(between {p01}"):
+        merge_parts([p24, p01])
+    with pytest.raises(ManifestError, match=r"gap: shards 0:2 .*before"):
+        merge_parts([p24])
+    other = _recipe()
+    other.sha256 = "cd" * 32
+    q24, = _write_parts(c, [(2, 4)], recipe=other)
+    with pytest.raises(ManifestError, match=rf"mixed recipes: {p01}.*sha256 abab.*{q24}.*sha256 cdcd"):
+        merge_parts([p01, q24])
+    r24, = _write_parts(tmp_path / "d", [(2, 4)], plan={**_PLAN, "limits": {"train": 5, "test": None}})
+    with pytest.raises(ManifestError, match=r"mixed parts: .*plan"):
+        merge_parts([p01, r24])
+    with pytest.raises(ManifestError, match="no partial manifests"):
+        merge_parts([])
+    (tmp_path / "bad.json").write_text('{"splits": {}}')
+    with pytest.raises(ManifestError, match="bad.json: not a dofsynth partial manifest"):
+        merge_parts([tmp_path / "bad.json"])
