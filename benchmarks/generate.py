@@ -1,25 +1,36 @@
-"""Benchmark `dofsynth generate`: samples/s at 512 and 1024 px with 1 and 2 workers, and the
-time per sample against the I/O floor (encoding and writing the same files), in one run.
+"""Benchmark `dofsynth generate` at large sizes: time per sample, peak memory per worker, and the
+speed-up from 1 to 2 local workers, all in one run.
 
-    .venv/bin/python benchmarks/generate.py                 # about 2-3 minutes on 2 cores
-    .venv/bin/python benchmarks/generate.py --sizes 512 --samples 4
+    .venv/bin/python benchmarks/generate.py                       # 1024, 2048, 4096 px: a few minutes
+    .venv/bin/python benchmarks/generate.py --sizes 1024 --samples 4
+    .venv/bin/python benchmarks/generate.py --sizes 4096 --breakdown   # where a 4096 px sample's memory goes
+    .venv/bin/python benchmarks/generate.py --sizes 512 1024 --floor   # plus the I/O floor
 
 The recipe is recipes/deeplens-18k.toml (1 target per scene, max CoC 32 px at 1024 px) with the
-built-in assets, its size set to each --sizes value and max CoC scaled with it. Numbers:
-- `s/sample (1 proc)`: steady-state time of one sample in this process (scene, layers, render,
-  encode), the library already built: seconds per sample per core.
-- `floor`: encoding the same decoded arrays to PNG/EXR/JSON and writing them as a tar shard;
-  `ratio` = s/sample / floor.
-- `w=N samples/s`: end to end `generate(..., workers=N)` including the library build and, for
-  N > 1, starting the spawn workers (2-3 s), so it understates the steady state for few samples;
-  `s/sample/worker` beside it is the time inside `generate_shard` per sample, per worker (the
-  steady-state cost per core when workers <= cores; it rises when the cores are shared).
-- `peak MiB`: the largest worker's peak resident memory (ru_maxrss).
+built-in assets, its size set to each --sizes value and max CoC scaled with it, one sample per
+shard (so both workers of a 2-worker run have work). Every run uses fresh spawn worker
+processes (also for 1 worker), so a worker's peak memory belongs to that size alone.
+Columns:
+- `s/sample`: time inside `generate_shard` per sample with 1 worker (scene, layers, render,
+  encode, write): the steady-state cost per core; `x1024`: its ratio to the first size, beside
+  `px ratio`, the ratio of pixel counts (target: time grows no faster than the pixels).
+- `peak MiB/worker`: largest `ru_maxrss` measured inside a worker (1- and 2-worker runs), against
+  the 1.5 GB (1536 MiB) target.
+- `w=1`, `w=2 samples/s`: end-to-end `generate` throughput (includes starting the workers and
+  building the asset library in each, about 2-3 s); `speed-up` = w2 / w1 throughput, and
+  `speed-up (steady)` = (s/sample/worker at w=1) / (s/sample/worker at w=2) * 2.
+- `--floor`: the I/O floor, encoding the same decoded arrays to PNG/EXR/JSON and writing a tar.
+- `--breakdown`: renders one sample of each size in this process, step by step as
+  `dofsynth.record.render_sample` does, and prints per step the NumPy memory it holds and its
+  peak (tracemalloc) and this process's ru_maxrss after it.
+On a machine whose cores are shared with other jobs the 2-worker numbers mostly show the load.
 """
 from __future__ import annotations
 
 import argparse
+import os
 import re
+import resource
 import sys
 import tempfile
 import time
@@ -29,13 +40,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dofsynth.config import recipe_from_text  # noqa: E402
+from dofsynth.executors import LocalExecutor  # noqa: E402
 from dofsynth.generate import _library_for, generate, render_one  # noqa: E402
-from dofsynth.io import encode_exr  # noqa: E402
-from dofsynth.record import decode_sample, encode_cover, encode_png8, encode_record  # noqa: E402
-from dofsynth.shards import write_shard  # noqa: E402
+
+TARGET_MIB = 1536
 
 
-def bench_recipe(base_text: str, size: int, samples: int, shard_size: int):
+def bench_recipe(base_text: str, size: int, samples: int, shard_size: int = 1):
     """The base recipe at `size` px with built-in assets, max CoC scaled, `samples` train only."""
     t = base_text
     t = re.sub(r"(?m)^size = \d+", f"size = {size}", t)
@@ -52,8 +63,14 @@ def bench_recipe(base_text: str, size: int, samples: int, shard_size: int):
     return recipe_from_text(t, f"bench-{size}.toml", ROOT / "recipes")
 
 
-def io_floor(samples: list[tuple[str, dict[str, bytes]]], folder: Path) -> float:
+def io_floor(recipe, n: int, folder: Path) -> float:
     """Seconds per sample to encode the decoded arrays again and write them as one tar."""
+    from dofsynth.io import encode_exr
+    from dofsynth.record import decode_sample, encode_cover, encode_png8, encode_record
+    from dofsynth.shards import write_shard
+
+    library = _library_for(recipe)
+    samples = [render_one(recipe, library, "train", i) for i in range(n)]
     decoded = [decode_sample(m, k) for k, m in samples]
     t0 = time.perf_counter()
     out = []
@@ -63,37 +80,110 @@ def io_floor(samples: list[tuple[str, dict[str, bytes]]], folder: Path) -> float
         members.update({f"dof.{i}.png": encode_png8(img) for i, img in enumerate(d["dof"])})
         out.append((key, members))
     write_shard(folder / "floor.tar", out)
-    return (time.perf_counter() - t0) / len(samples)
+    return (time.perf_counter() - t0) / n
+
+
+def _rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def breakdown(recipe) -> None:
+    """One sample, step by step as record.render_sample does it: NumPy memory (tracemalloc:
+    held after the step, peak during it) and ru_maxrss after it."""
+    import tracemalloc
+
+    import numpy as np
+
+    from dofsynth.aperture import from_dict as aperture_from_dict
+    from dofsynth.color import highlight_boost
+    from dofsynth.compose import scene_layers
+    from dofsynth.io import encode_exr
+    from dofsynth.record import encode_alphas, encode_srgb_png, sample_record
+    from dofsynth.render import render_planes
+    from dofsynth.scene import sample_scene
+
+    library = _library_for(recipe)
+    h, w = recipe.frame
+    frame = h * w * 4 / 2**20
+    print(f"\nbreakdown at {recipe.size} px ({h}x{w}); one float32 channel = {frame:.0f} MiB, "
+          f"an RGB float32 frame = {3 * frame:.0f} MiB; ru_maxrss before: {_rss_mib():.0f} MiB")
+    print(f"  {'step':<34} {'held MiB':>9} {'peak MiB':>9} {'ru_maxrss':>10} {'s':>6}")
+    tracemalloc.start()
+    keep = {}
+
+    def step(name, fn):
+        tracemalloc.reset_peak()
+        t0 = time.perf_counter()
+        out = fn()
+        dt = time.perf_counter() - t0
+        cur, peak = tracemalloc.get_traced_memory()
+        print(f"  {name:<34} {cur / 2**20:>9.0f} {peak / 2**20:>9.0f} {_rss_mib():>10.0f} {dt:>6.2f}", flush=True)
+        return out
+
+    scene = step("sample_scene", lambda: sample_scene(recipe, library, "train", 0))
+    record = sample_record(scene)
+    layers = step("scene_layers (compose)", lambda: scene_layers(scene, library))
+    planes = list(layers.planes)
+    keep["members"] = step("encode aif/depth/cover", lambda: {
+        "aif.png": encode_srgb_png(layers.aif),
+        "depth.exr": encode_exr(np.asarray(layers.disparity, dtype=np.float32)),
+        "cover.png": encode_alphas(planes[2].alpha, planes[1].alpha)})
+    del layers
+    step("drop aif/disparity", lambda: None)
+    hl = recipe.render.highlight
+    if hl.enabled:
+        def boost():
+            for p in planes:
+                highlight_boost(p.rgb, threshold=hl.threshold, gain=hl.gain, power=hl.power, out=p.rgb)
+        step("highlight boost (in place)", boost)
+    aperture = aperture_from_dict(record.get("aperture") or {"kind": "disk"})
+    for n, t in enumerate(record["targets"]):
+        img = step(f"render_planes target {n}", lambda: render_planes(planes, float(t["focus"]),
+                                                                      float(t["max_coc"]), aperture))
+        step(f"encode dof.{n}.png", lambda: encode_srgb_png(img))
+        del img
+    tracemalloc.stop()
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--recipe", type=Path, default=ROOT / "recipes" / "deeplens-18k.toml")
-    ap.add_argument("--sizes", type=int, nargs="+", default=[512, 1024])
-    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
-    ap.add_argument("--samples", type=int, default=0, help="samples per measurement (default 8 at <= 512 px, else 6)")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048, 4096])
+    ap.add_argument("--samples", type=int, default=0,
+                    help="samples per run (default 4 up to 1024 px, 2 above; even, so 2 workers share them)")
+    ap.add_argument("--floor", action="store_true", help="also measure the I/O floor (in this process)")
+    ap.add_argument("--breakdown", action="store_true", help="also trace one sample's memory step by step")
     args = ap.parse_args(argv)
     base = args.recipe.read_text(encoding="utf-8")
-    print(f"{'size':>5} {'s/sample (1 proc)':>18} {'floor s':>8} {'ratio':>6} "
-          + " ".join(f"{'w=' + str(w) + ' samples/s':>15} {'s/sample/worker':>15}" for w in args.workers)
-          + f" {'peak MiB':>9}")
+    print(f"cores: {os.cpu_count()}, load average: {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
+    print(f"{'size':>5} {'n':>3} {'s/sample':>9} {'x1024':>6} {'px ratio':>8} {'peak MiB/worker':>16} "
+          f"{'w=1 samples/s':>14} {'w=2 samples/s':>14} {'speed-up':>9} {'(steady)':>9}"
+          + (f" {'floor s':>8}" if args.floor else ""), flush=True)
+    first = None
     for size in args.sizes:
-        n = args.samples or (8 if size <= 512 else 6)
-        recipe = bench_recipe(base, size, n, max(1, n // max(args.workers)))
-        library = _library_for(recipe)
-        render_one(recipe, library, "train", 0)  # warm caches (kernels, FFT plans)
-        t0 = time.perf_counter()
-        samples = [render_one(recipe, library, "train", i) for i in range(n)]
-        per_sample = (time.perf_counter() - t0) / n
-        rates, peak = [], 0.0
+        n = args.samples or (4 if size <= 1024 else 2)
+        recipe = bench_recipe(base, size, n)
+        runs = {}
         with tempfile.TemporaryDirectory() as tmp:
-            floor = io_floor(samples, Path(tmp))
-            for w in args.workers:
-                res = generate(recipe, Path(tmp) / f"w{w}", workers=w, progress=False)
-                rates.append((res.samples_per_second, res.seconds_per_sample_per_worker))
-                peak = max(peak, res.peak_rss_mb)
-        print(f"{size:>5} {per_sample:>18.3f} {floor:>8.3f} {per_sample / floor:>6.1f} "
-              + " ".join(f"{r:>15.2f} {c:>15.3f}" for r, c in rates) + f" {peak:>9.0f}", flush=True)
+            for w in (1, 2):
+                runs[w] = generate(recipe, Path(tmp) / f"w{w}", executor=LocalExecutor(w, in_process=False),
+                                   progress=False)
+            floor = io_floor(recipe, min(n, 2), Path(tmp)) if args.floor else None
+        per = runs[1].seconds_per_sample_per_worker
+        first = first or (size, per)
+        t_ratio, px_ratio = per / first[1], (size / first[0]) ** 2
+        peak = max(r.peak_rss_mb for r in runs.values())
+        flag = "" if peak <= TARGET_MIB else " !"
+        speed = runs[2].samples_per_second / runs[1].samples_per_second
+        steady = 2 * per / runs[2].seconds_per_sample_per_worker
+        print(f"{size:>5} {n:>3} {per:>9.3f} {t_ratio:>6.2f} {px_ratio:>8.2f} {peak:>14.0f}{flag:2s} "
+              f"{runs[1].samples_per_second:>14.3f} {runs[2].samples_per_second:>14.3f} {speed:>9.2f} {steady:>9.2f}"
+              + (f" {floor:>8.3f}" if floor is not None else ""), flush=True)
+    print(f"(target: peak <= {TARGET_MIB} MiB per worker; '!' marks a size over it. x1024 <= px ratio: "
+          "time grows no faster than the pixel count)")
+    if args.breakdown:
+        for size in args.sizes:
+            breakdown(bench_recipe(base, size, 1))
     return 0
 
 

@@ -95,20 +95,23 @@ def _worker_shard(out: str, task: ShardTask, limit: int | None) -> tuple[ShardIn
 
 
 class LocalExecutor(Executor):
-    """This machine: in-process for one worker (or one task), else a spawn process pool."""
+    """This machine: in-process for one worker (or one task), else a spawn process pool.
+    `in_process=False` uses the pool even for one worker (a fresh process: benchmarks measure
+    its peak memory)."""
 
     name = "local"
 
-    def __init__(self, workers: int = 1):
+    def __init__(self, workers: int = 1, in_process: bool | None = None):
         if int(workers) != workers or workers < 1:
             raise ValueError(f"--workers must be an integer >= 1, got {workers}")
         self.workers = int(workers)
+        self.in_process = in_process
 
     def describe(self) -> str:
         return f"local, {self.workers} worker{'s' if self.workers != 1 else ''}"
 
     def run(self, recipe, out, tasks, limits, on_samples=None, on_submitted=None):
-        if self.workers == 1 or len(tasks) <= 1:
+        if self.in_process if self.in_process is not None else (self.workers == 1 or len(tasks) <= 1):
             yield from self._in_process(recipe, out, tasks, limits, on_samples, on_submitted)
         else:
             yield from self._pool(recipe, out, tasks, limits, on_samples, on_submitted)
