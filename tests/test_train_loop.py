@@ -17,7 +17,7 @@ from dofsynth.train import checkpoint
 from dofsynth.train.config import from_dict, load, to_toml
 from dofsynth.train.infer import render_photo, upsampling_steps
 from dofsynth.train.models import DeepLensNet
-from test_train_data import TINY, make_dataset, tiny_config
+from test_train_data import make_dataset, tiny_config
 
 ASSETS = Path(__file__).resolve().parents[2] / "shared" / "assets"
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,6 +75,8 @@ def test_stopping_and_resuming_equals_an_uninterrupted_run(setup, capsys):
     args = ["train", str(cfg_path), "--data", str(data), "--run", str(run)]
     assert main(args + ["--steps", "2"]) == 0
     assert checkpoint.load(run / "ckpt.pt")["step"] == 2
+    with open(run / "log.csv", "a") as fh:          # a row logged after the last checkpoint
+        fh.write("3,0,0.1,9.9,9.9,9.9,,,1,1\n")
     assert main(args) == 0          # the same command continues to train.max_steps
     assert "resuming" in capsys.readouterr().out
     a, b = checkpoint.load(run4 / "ckpt.pt"), checkpoint.load(run / "ckpt.pt")

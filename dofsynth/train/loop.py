@@ -64,6 +64,20 @@ def batch_stream(dataset, loader, epoch: int, skip: int):
         epoch, skip = epoch + 1, 0
 
 
+def trim_log(path: Path, step: int) -> None:
+    """Drop log rows after `step` (logged after the last checkpoint of an interrupted run)."""
+    if not path.is_file():
+        return
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if all(int(r["step"]) <= step for r in rows):
+        return
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=LOG_FIELDS)
+        w.writeheader()
+        w.writerows(r for r in rows if int(r["step"]) <= step)
+
+
 def to_device(batch: dict, device) -> dict:
     return {k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v for k, v in batch.items()}
 
@@ -179,6 +193,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
     log_file = writer = tb = None
     if master:
         log_path = run_dir / "log.csv"
+        trim_log(log_path, step)
         new_log = not log_path.is_file()
         log_file = open(log_path, "a", newline="")
         writer = csv.DictWriter(log_file, fieldnames=LOG_FIELDS)
