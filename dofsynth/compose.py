@@ -29,7 +29,11 @@ class Layers:
     planes: list[Plane]        # back to front: background (opaque, disparity map), middle, front
     aif: np.ndarray            # (H, W, 3) float32 linear: the planes composited "over", no blur
     disparity: np.ndarray      # (H, W) float32: front-most plane with alpha >= 0.5
-    cover: np.ndarray          # (H, W, 2) float32: (front alpha, middle alpha)
+
+    @property
+    def cover(self) -> np.ndarray:
+        """(H, W, 2) float32: (front alpha, middle alpha), made on demand (saves memory)."""
+        return np.stack([self.planes[2].alpha, self.planes[1].alpha], axis=2).astype(np.float32)
 
 
 def background_disparity(mode: str, b0: float, b1: float, direction: str | None, h: int, w: int) -> np.ndarray:
@@ -66,7 +70,8 @@ def background_image(rgb: np.ndarray, crop, flip: bool, h: int, w: int) -> np.nd
     part = rgb[y:y + ch, x:x + cw]
     if flip:
         part = part[:, ::-1]
-    return np.clip(resize(part, w, h), 0.0, None)
+    out = resize(part, w, h)  # always a new array
+    return np.maximum(out, 0.0, out=out)
 
 
 def place_foreground(rgb: np.ndarray, alpha: np.ndarray, extent, params: ObjectParams,
@@ -89,8 +94,9 @@ def place_foreground(rgb: np.ndarray, alpha: np.ndarray, extent, params: ObjectP
         return out_rgb, out_a
     part = small[y0 - params.y:y1 - params.y, x0 - params.x:x1 - params.x]
     pa = np.clip(part[..., 3], 0.0, 1.0)
-    safe = np.maximum(pa, 1e-6)[..., None]
-    out_rgb[y0:y1, x0:x1] = np.where(pa[..., None] > 1e-6, np.clip(part[..., :3], 0.0, None) / safe, 0.0)
+    col = np.maximum(part[..., :3], 0.0)
+    # straight colour where alpha > 1e-6, else 0 (out_rgb is zero there already)
+    np.divide(col, pa[..., None], out=out_rgb[y0:y1, x0:x1], where=pa[..., None] > 1e-6)
     out_a[y0:y1, x0:x1] = pa
     return out_rgb, out_a
 
@@ -103,13 +109,35 @@ def _asset(library: AssetLibrary, scene: Scene, role: str) -> Asset:
     return asset
 
 
+def _alpha_box(alpha: np.ndarray) -> tuple[slice, slice] | None:
+    """Row and column slices of the bounding box of alpha > 0, or None when it is all 0."""
+    on = alpha > 0
+    rows = np.flatnonzero(on.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(on[rows[0]:rows[-1] + 1].any(axis=0))
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+
 def scene_layers(scene: Scene, library: AssetLibrary) -> Layers:
-    """The planes of `scene` (back to front), its all-in-focus image, disparity and coverages."""
+    """The planes of `scene` (back to front), its all-in-focus image, disparity and coverages.
+
+    The background plane's alpha is a read-only broadcast 1 and its disparity a float (flat) or
+    a read-only broadcast of one row or column (ramp): no frame-sized arrays for them. The
+    all-in-focus image and the disparity are updated only inside each cutout's alpha box
+    (outside it the cutout has alpha 0 and changes nothing)."""
     h, w = scene.size
     bgp = scene.background
     bg_rgb = background_image(library.load_background(_asset(library, scene, "background")), bgp.crop, bgp.flip, h, w)
-    bg_disp = background_disparity(bgp.mode, bgp.b0, bgp.b1, bgp.direction, h, w)
-    planes = [Plane(rgb=bg_rgb, alpha=np.ones((h, w), np.float32), disparity=bg_disp)]
+    if bgp.mode == "flat":
+        bg_plane_disp = float(np.float32(bgp.b0))
+    elif bgp.direction == "horizontal":
+        bg_plane_disp = np.broadcast_to(background_disparity(bgp.mode, bgp.b0, bgp.b1, bgp.direction, 1, w), (h, w))
+    else:
+        bg_plane_disp = np.broadcast_to(background_disparity(bgp.mode, bgp.b0, bgp.b1, bgp.direction, h, 1), (h, w))
+    disparity = background_disparity(bgp.mode, bgp.b0, bgp.b1, bgp.direction, h, w)
+    ones = np.broadcast_to(np.float32(1.0), (h, w))
+    planes = [Plane(rgb=bg_rgb, alpha=ones, disparity=bg_plane_disp)]
     for role, params in (("middle", scene.middle), ("front", scene.front)):
         asset = _asset(library, scene, role)
         rgb, alpha = library.load_foreground(asset)
@@ -117,10 +145,15 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> Layers:
         planes.append(Plane(rgb=prgb, alpha=pa, disparity=float(params.disparity)))
 
     aif = bg_rgb.copy()
-    disparity = bg_disp.copy()
     for p in planes[1:]:
-        a = p.alpha[..., None]
-        aif = p.rgb * a + aif * (1.0 - a)
-        disparity[p.alpha >= COVER_THRESHOLD] = p.disparity
-    cover = np.stack([planes[2].alpha, planes[1].alpha], axis=2).astype(np.float32)
-    return Layers(planes=planes, aif=aif.astype(np.float32), disparity=disparity.astype(np.float32), cover=cover)
+        box = _alpha_box(p.alpha)
+        if box is None:
+            continue
+        a = p.alpha[box]
+        keep = 1.0 - a
+        for ch in range(3):  # one channel at a time: small temporaries
+            region = aif[box + (ch,)]
+            region[...] = p.rgb[box + (ch,)] * a + region * keep
+        d = disparity[box]
+        d[p.alpha[box] >= COVER_THRESHOLD] = p.disparity
+    return Layers(planes=planes, aif=aif, disparity=disparity)

@@ -31,19 +31,50 @@ from dofsynth.planes import Plane, validate_planes
 # 2-6x faster there, measured), larger ones via FFT (cv2 switches to its own slower DFT beyond).
 SMALL_KERNEL = 5
 METHODS = ("layered", "exact")
+# Default relative level spacing of varying-disparity planes (render_planes' level_ratio).
+LEVEL_RATIO = 1.0 / 32.0
 
 
-@lru_cache(maxsize=16)  # each entry is up to a frame of complex64
-def _kernel_fft(aperture: Aperture, signed_radius: float, n0: int, n1: int) -> np.ndarray:
-    """rfft2 of the kernel placed with its centre at (0, 0) on an (n0, n1) torus."""
-    k = kernel(aperture, signed_radius)
-    s = k.shape[0] // 2
-    buf = np.zeros((n0, n1), dtype=np.float32)
-    buf[: 2 * s + 1, : 2 * s + 1] = k
-    buf = np.roll(buf, (-s, -s), axis=(0, 1))
-    out = sfft.rfft2(buf)
-    out.setflags(write=False)
-    return out
+def _kernel_spectrum(k: np.ndarray, n0: int, n1: int) -> np.ndarray:
+    """rfft2 over an (n0, n1) grid of the kernel placed at the grid's top-left corner: rows
+    first (only 2S+1 of them are non-zero), then columns (complex64)."""
+    part = sfft.rfft(k, n=n1, axis=1)
+    return sfft.fft(part, n=n0, axis=0)
+
+
+class _Conv:
+    """Linear convolution of (h, w) float32 channels with one kernel, sharing its spectrum.
+
+    `full(x)` returns the (h + 2S, w + 2S) full convolution: input pixel (i, j) spreads over
+    output rows i .. i + 2S and columns j .. j + 2S (output (i + S, j + S) is its centre), so
+    the input needs no zero margin. Small kernels use cv2.filter2D, large ones one float32 FFT
+    per channel (next_fast_len sizes, at most one channel's spectrum alive at a time)."""
+
+    def __init__(self, signed_radius: float, aperture: Aperture, h: int, w: int):
+        self.s = s = support_radius(signed_radius)
+        self.k = kernel(aperture, signed_radius)
+        self.h, self.w = h, w
+        self.direct = s <= SMALL_KERNEL
+        if self.direct:
+            self.flipped = np.ascontiguousarray(self.k[::-1, ::-1])
+        else:
+            self.n0 = sfft.next_fast_len(h + 2 * s, real=True)
+            self.n1 = sfft.next_fast_len(w + 2 * s, real=True)
+            self.spec = _kernel_spectrum(self.k, self.n0, self.n1)
+
+    def full(self, x: np.ndarray) -> np.ndarray:
+        s, h, w = self.s, self.h, self.w
+        if s == 0:
+            return x
+        if self.direct:
+            pad = cv2.copyMakeBorder(np.ascontiguousarray(x, dtype=np.float32), 2 * s, 2 * s, 2 * s, 2 * s,
+                                     cv2.BORDER_CONSTANT, value=0)
+            out = cv2.filter2D(pad, -1, self.flipped, anchor=(s, s), borderType=cv2.BORDER_CONSTANT)
+            return out[s : s + h + 2 * s, s : s + w + 2 * s]
+        spec = sfft.rfft2(x, s=(self.n0, self.n1))
+        spec *= self.spec
+        out = sfft.irfft2(spec, s=(self.n0, self.n1), overwrite_x=True)
+        return out[: h + 2 * s, : w + 2 * s]
 
 
 def convolve(x: np.ndarray, signed_radius: float, aperture: Aperture) -> np.ndarray:
@@ -55,133 +86,216 @@ def convolve(x: np.ndarray, signed_radius: float, aperture: Aperture) -> np.ndar
     s = support_radius(signed_radius)
     if s == 0:
         return x.copy()
-    k = kernel(aperture, signed_radius)
     c, h, w = x.shape
-    if s <= SMALL_KERNEL:
-        flipped = np.ascontiguousarray(k[::-1, ::-1])
-        return np.stack(
-            [cv2.filter2D(x[i], -1, flipped, borderType=cv2.BORDER_CONSTANT) for i in range(c)]
-        )
-    n0, n1 = sfft.next_fast_len(h, real=True), sfft.next_fast_len(w, real=True)
-    spec = sfft.rfft2(x, s=(n0, n1), axes=(1, 2))
-    spec *= _kernel_fft(aperture, float(signed_radius), n0, n1)
-    return sfft.irfft2(spec, s=(n0, n1), axes=(1, 2))[:, :h, :w].astype(np.float32, copy=False)
+    conv = _Conv(signed_radius, aperture, h, w)
+    return np.stack([conv.full(x[i])[s : s + h, s : s + w] for i in range(c)]).astype(np.float32, copy=False)
 
 
 def _bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
     rows = np.flatnonzero(mask.any(axis=1))
     if rows.size == 0:
         return None
-    cols = np.flatnonzero(mask.any(axis=0))
+    cols = np.flatnonzero(mask[rows[0] : rows[-1] + 1].any(axis=0))
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
-def _premultiplied(plane: Plane) -> np.ndarray:
-    """(4, H, W) float32: R*a, G*a, B*a, a."""
-    a = np.asarray(plane.alpha, dtype=np.float32)
-    rgb = np.asarray(plane.rgb, dtype=np.float32)
-    return np.concatenate([np.moveaxis(rgb, 2, 0) * a, a[None]], axis=0)
+def _is_one(alpha: np.ndarray) -> bool:
+    if alpha.ndim == 2 and alpha.strides == (0, 0):  # a broadcast scalar
+        return float(alpha.flat[0]) == 1.0
+    return bool(np.all(alpha == 1.0))
 
 
-def _blur_constant(pm: np.ndarray, c: float, aperture: Aperture, backmost: bool):
-    """Blur a constant-CoC plane. Returns (block (4, h, w), y0, x0): the frame region it covers."""
-    _, H, W = pm.shape
+def _compact(m: np.ndarray) -> np.ndarray:
+    """The smallest array that broadcasts back to `m`: a broadcast row or column stays one."""
+    if m.strides[0] == 0:
+        m = m[:1]
+    if m.strides[1] == 0:
+        m = m[:, :1]
+    return m
+
+
+def _grab(a: np.ndarray, y0: int, y1: int, x0: int, x1: int, edge: bool) -> np.ndarray:
+    """a[y0:y1, x0:x1] of a 2-D frame array for a box that may leave the frame: outside it,
+    the edge pixel (edge=True) or 0. A view when the box lies inside."""
+    H, W = a.shape
+    cy0, cy1, cx0, cx1 = max(y0, 0), min(y1, H), max(x0, 0), min(x1, W)
+    part = a[cy0:cy1, cx0:cx1]
+    pads = (cy0 - y0, y1 - cy1, cx0 - x0, x1 - cx1)
+    if not any(pads):
+        return part
+    if edge:
+        if part.strides[0] == 0 or part.strides[1] == 0:
+            return np.pad(part, ((pads[0], pads[1]), (pads[2], pads[3])), mode="edge")
+        return cv2.copyMakeBorder(np.ascontiguousarray(part), *pads, cv2.BORDER_REPLICATE)
+    out = np.zeros((y1 - y0, x1 - x0), a.dtype)
+    out[pads[0] : pads[0] + part.shape[0], pads[2] : pads[2] + part.shape[1]] = part
+    return out
+
+
+def _add_clipped(dst: np.ndarray, y0: int, x0: int, block: np.ndarray) -> None:
+    """dst[y0:, x0:] += block, for the part of the block that lies inside dst."""
+    H, W = dst.shape
+    h, w = block.shape
+    cy0, cx0, cy1, cx1 = max(y0, 0), max(x0, 0), min(y0 + h, H), min(x0 + w, W)
+    if cy1 > cy0 and cx1 > cx0:
+        dst[cy0:cy1, cx0:cx1] += block[cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0]
+
+
+def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
+    """Blur a constant-CoC plane over its alpha box and composite it "over" `acc` (H, W, 3),
+    one channel at a time: the blurred alpha first, then each premultiplied colour."""
+    H, W, _ = acc.shape
+    y0, y1, x0, x1 = box
     s = support_radius(c)
-    if s == 0:
-        return pm, 0, 0
-    if backmost:
-        padded = np.pad(pm, ((0, 0), (s, s), (s, s)), mode="edge")
-        return convolve(padded, c, aperture)[:, s : s + H, s : s + W], 0, 0
-    bb = _bbox(pm[3] > 0)
-    if bb is None:
-        return pm[:, :0, :0], 0, 0
-    y0, y1, x0, x1 = bb
-    padded = np.pad(pm[:, y0:y1, x0:x1], ((0, 0), (s, s), (s, s)))
-    out = convolve(padded, c, aperture)
-    ty0, tx0 = y0 - s, x0 - s
-    cy0, cx0 = max(ty0, 0), max(tx0, 0)
-    cy1, cx1 = min(y1 + s, H), min(x1 + s, W)
-    return out[:, cy0 - ty0 : cy1 - ty0, cx0 - tx0 : cx1 - tx0], cy0, cx0
+    if backmost:  # the frame, edge-replicated S px beyond it: its blur covers the frame
+        gy0, gy1, gx0, gx1 = -s, H + s, -s, W + s
+    else:
+        gy0, gy1, gx0, gx1 = y0, y1, x0, x1
+    h, w = gy1 - gy0, gx1 - gx0
+    conv = _Conv(c, aperture, h, w)
+    # output region of the blur in frame coordinates, clipped
+    oy0, ox0 = max(gy0 - s, 0), max(gx0 - s, 0)
+    oy1, ox1 = min(gy1 + s, H), min(gx1 + s, W)
+    a_src = _grab(alpha, gy0, gy1, gx0, gx1, backmost)
+    one = backmost and _is_one(alpha)
+
+    def blurred(x):
+        out = conv.full(np.ascontiguousarray(x, dtype=np.float32))
+        return out[oy0 - gy0 + s : oy1 - gy0 + s, ox0 - gx0 + s : ox1 - gx0 + s]
+
+    keep = None if one else 1.0 - blurred(a_src)
+    for ch in range(3):
+        src = _grab(rgb[:, :, ch], gy0, gy1, gx0, gx1, backmost)
+        x = src if one else src * a_src
+        region = acc[oy0:oy1, ox0:ox1, ch]
+        if keep is None:  # opaque: "over" replaces what lies behind
+            region[...] = blurred(x)
+        else:
+            region *= keep
+            region += blurred(x)
 
 
-def level_weights(cmap: np.ndarray, level_step: float):
-    """CoC levels (pixels) c_k = c_min + k * level_step covering [c_min, c_max], and for each pixel
-    its lower level index k0 and the weight f of level k0+1 (1 - f goes to level k0).
+def level_grid(cmin: float, cmax: float, level_step: float, level_ratio: float = 0.0) -> np.ndarray:
+    """CoC levels (pixels) from c_min up to the first level >= c_max: c_0 = c_min and
+    c_{k+1} = c_k + max(level_step, level_ratio * |c_k|). With level_ratio 0 the step is fixed;
+    above 0 it grows with the radius, where neighbouring kernels differ relatively less."""
+    if cmax <= cmin:
+        return np.array([float(cmin)])
+    if level_ratio <= 0.0:
+        n = max(int(math.ceil((cmax - cmin) / level_step)), 1) + 1
+        return cmin + level_step * np.arange(n)
+    levels = [float(cmin)]
+    while levels[-1] < cmax:
+        c = levels[-1]
+        levels.append(c + max(level_step, level_ratio * abs(c)))
+    return np.array(levels)
 
-    Anchoring the levels at c_min with a fixed step keeps the result continuous in focus, max_coc
-    and the map (a new top level enters with weight 0); a constant map is a single level.
+
+def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0):
+    """CoC levels (pixels, `level_grid` from c_min) covering [c_min, c_max], and for each pixel
+    its lower level index k0 and the weight f of level k0+1 (1 - f goes to level k0), linear
+    in the pixel's CoC between the two levels.
+
+    Anchoring the levels at c_min keeps the result continuous in focus, max_coc and the map (a
+    new top level enters with weight 0); a constant map is a single level.
     """
     cmin, cmax = float(cmap.min()), float(cmap.max())
-    if cmax == cmin:
-        return np.array([cmin]), np.zeros(cmap.shape, np.int32), np.zeros(cmap.shape, np.float32)
-    n = max(int(math.ceil((cmax - cmin) / level_step)), 1) + 1
-    levels = cmin + level_step * np.arange(n)
-    t = (cmap.astype(np.float64) - cmin) / level_step
-    k0 = np.clip(np.floor(t), 0, n - 2).astype(np.int32)
-    f = np.clip(t - k0, 0.0, 1.0).astype(np.float32)
+    levels = level_grid(cmin, cmax, level_step, level_ratio)
+    if levels.size == 1:
+        return levels, np.zeros(cmap.shape, np.int32), np.zeros(cmap.shape, np.float32)
+    n = levels.size
+    c = cmap.astype(np.float64)
+    if level_ratio <= 0.0:
+        t = (c - cmin) / level_step
+        k0 = np.clip(np.floor(t), 0, n - 2).astype(np.int32)
+        f = np.clip(t - k0, 0.0, 1.0).astype(np.float32)
+    else:
+        k0 = np.clip(np.searchsorted(levels, c, side="right") - 1, 0, n - 2).astype(np.int32)
+        f = np.clip((c - levels[k0]) / (levels[k0 + 1] - levels[k0]), 0.0, 1.0).astype(np.float32)
     return levels, k0, f
 
 
-def _blur_varying(pm, cmap, aperture, backmost, level_step, alpha_one):
-    """Normalized level scatter of a plane with per-pixel CoC `cmap` (pixels)."""
-    _, H, W = pm.shape
-    smax = support_radius(max(abs(float(cmap.min())), abs(float(cmap.max()))))
+def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, backmost, level_step,
+                       level_ratio) -> None:
+    """Normalized level scatter of a plane with a disparity map, composited "over" `acc`.
+
+    Work region: O, the output (the frame for the backmost plane, else the alpha box grown by
+    the largest kernel), and E, O grown by that kernel again (the pixels that reach O; outside
+    the frame the colour is edge-replicated for the backmost plane and zero otherwise, the CoC
+    map is always edge-replicated). A map that is a broadcast row or column (a ramp) keeps its
+    levels as one row or column."""
+    H, W, _ = acc.shape
+    cm = np.float32(max_coc) * (_compact(np.asarray(dmap, dtype=np.float32)) - np.float32(focus))
+    smax = support_radius(max(abs(float(cm.min())), abs(float(cm.max()))))
     if backmost:
         oy0, oy1, ox0, ox1 = 0, H, 0, W
     else:
-        bb = _bbox(pm[3] > 0)
-        if bb is None:
-            return pm[:, :0, :0], 0, 0
-        oy0, oy1 = max(bb[0] - smax, 0), min(bb[1] + smax, H)
-        ox0, ox1 = max(bb[2] - smax, 0), min(bb[3] + smax, W)
-    # E: the output region O grown by smax; outside the frame, colour is edge-replicated for the
-    # backmost plane and zero otherwise; the CoC map is always edge-replicated.
+        oy0, oy1 = max(box[0] - smax, 0), min(box[1] + smax, H)
+        ox0, ox1 = max(box[2] - smax, 0), min(box[3] + smax, W)
     ey0, ey1, ex0, ex1 = oy0 - smax, oy1 + smax, ox0 - smax, ox1 + smax
-    iy = np.clip(np.arange(ey0, ey1), 0, H - 1)
-    ix = np.clip(np.arange(ex0, ex1), 0, W - 1)
-    c_e = cmap[np.ix_(iy, ix)]
-    p_e = pm[:, iy[:, None], ix[None, :]]
-    if not backmost:
-        inside = ((np.arange(ey0, ey1) >= 0) & (np.arange(ey0, ey1) < H))[:, None] & (
-            (np.arange(ex0, ex1) >= 0) & (np.arange(ex0, ex1) < W)
-        )[None, :]
-        p_e = p_e * inside
-    # Channels scattered: premultiplied RGB, alpha (unless it is 1, then it equals the weight), weight.
-    nch = 4 if alpha_one else 5
-    he, we = c_e.shape
-    acc = np.zeros((nch, he, we), dtype=np.float32)
-    levels, k0, f = level_weights(c_e, level_step)
+    he, we = ey1 - ey0, ex1 - ex0
+    iy = np.clip(np.arange(ey0, ey1), 0, H - 1) if cm.shape[0] > 1 else np.zeros(1, np.intp)
+    ix = np.clip(np.arange(ex0, ex1), 0, W - 1) if cm.shape[1] > 1 else np.zeros(1, np.intp)
+    c_e = cm[np.ix_(iy, ix)]  # compact along broadcast axes
+    levels, k0c, fc = level_weights(c_e, level_step, level_ratio)
+    k0 = np.broadcast_to(k0c, (he, we))
+    f = np.broadcast_to(fc, (he, we))
+    one = backmost and _is_one(alpha)
+    # Accumulators over O: premultiplied colour (straight into acc for the backmost plane,
+    # which is composited over black), alpha (not for an opaque backmost plane) and weight.
+    oh, ow = oy1 - oy0, ox1 - ox0
+    col = acc[oy0:oy1, ox0:ox1] if backmost else np.zeros((oh, ow, 3), np.float32)
+    if backmost:
+        col[...] = 0.0
+    a_acc = None if backmost else np.zeros((oh, ow), np.float32)
+    w_acc = np.zeros((oh, ow), np.float32)
     # Level k touches pixels with k0 in {k-1, k}: a superset box from per-row/column ranges.
-    rlo, rhi = k0.min(axis=1), k0.max(axis=1) + 1
-    clo, chi = k0.min(axis=0), k0.max(axis=0) + 1
+    rlo, rhi = k0c.min(axis=1), k0c.max(axis=1) + 1
+    clo, chi = k0c.min(axis=0), k0c.max(axis=0) + 1
+    if rlo.size == 1:
+        rlo, rhi = np.broadcast_to(rlo, he), np.broadcast_to(rhi, he)
+    if clo.size == 1:
+        clo, chi = np.broadcast_to(clo, we), np.broadcast_to(chi, we)
     for k, ck in enumerate(levels):
         rows = np.flatnonzero((rlo <= k) & (rhi >= k))
         cols = np.flatnonzero((clo <= k) & (chi >= k))
         if rows.size == 0 or cols.size == 0:
             continue
-        y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+        s = support_radius(ck)
+        # only pixels within s of O reach it: E is O grown by smax >= s
+        y0, y1 = max(int(rows[0]), smax - s), min(int(rows[-1]) + 1, smax + oh + s)
+        x0, x1 = max(int(cols[0]), smax - s), min(int(cols[-1]) + 1, smax + ow + s)
+        if y1 <= y0 or x1 <= x0:
+            continue
         ksub, fsub = k0[y0:y1, x0:x1], f[y0:y1, x0:x1]
         wsub = np.where(ksub == k, 1.0 - fsub, 0.0).astype(np.float32)
         wsub += np.where(ksub == k - 1, fsub, 0.0)
         if not wsub.any():
             continue
-        s = support_radius(ck)
-        x = np.zeros((nch, y1 - y0 + 2 * s, x1 - x0 + 2 * s), dtype=np.float32)
-        x[:3, s : s + y1 - y0, s : s + x1 - x0] = p_e[:3, y0:y1, x0:x1] * wsub
-        if not alpha_one:
-            x[3, s : s + y1 - y0, s : s + x1 - x0] = p_e[3, y0:y1, x0:x1] * wsub
-        x[-1, s : s + y1 - y0, s : s + x1 - x0] = wsub
-        out = convolve(x, float(ck), aperture)
-        ty0, tx0 = y0 - s, x0 - s
-        cy0, cx0 = max(ty0, 0), max(tx0, 0)
-        cy1, cx1 = min(y1 + s, he), min(x1 + s, we)
-        acc[:, cy0:cy1, cx0:cx1] += out[:, cy0 - ty0 : cy1 - ty0, cx0 - tx0 : cx1 - tx0]
-    o = acc[:, oy0 - ey0 : oy1 - ey0, ox0 - ex0 : ox1 - ex0]
-    den = np.maximum(o[-1], 1e-12)
-    res = np.empty((4,) + den.shape, dtype=np.float32)
-    res[:3] = o[:3] / den
-    res[3] = 1.0 if alpha_one else o[3] / den
-    return res, oy0, ox0
+        conv = _Conv(float(ck), aperture, y1 - y0, x1 - x0)
+        # frame coordinates of the strip, and where its blur lands in O
+        fy0, fy1, fx0, fx1 = y0 + ey0, y1 + ey0, x0 + ex0, x1 + ex0
+        ty0, tx0 = fy0 - s - oy0, fx0 - s - ox0
+        _add_clipped(w_acc, ty0, tx0, conv.full(wsub))
+        a_sub = None if one else _grab(alpha, fy0, fy1, fx0, fx1, backmost)
+        wa = wsub if one else wsub * a_sub
+        if a_acc is not None:
+            _add_clipped(a_acc, ty0, tx0, conv.full(wa))
+        for ch in range(3):
+            x = _grab(rgb[:, :, ch], fy0, fy1, fx0, fx1, backmost) * wa
+            _add_clipped(col[:, :, ch], ty0, tx0, conv.full(x))
+    np.maximum(w_acc, 1e-12, out=w_acc)
+    inv = np.reciprocal(w_acc, out=w_acc)
+    if backmost:
+        col *= inv[:, :, None]
+        return
+    a_acc *= inv
+    region = acc[oy0:oy1, ox0:ox1]
+    keep = 1.0 - a_acc
+    for ch in range(3):
+        col[:, :, ch] *= inv
+        region[:, :, ch] *= keep
+        region[:, :, ch] += col[:, :, ch]
 
 
 def render_planes(
@@ -192,6 +306,7 @@ def render_planes(
     *,
     method: str = "layered",
     level_step: float = 0.5,
+    level_ratio: float = LEVEL_RATIO,
     samples: int | None = None,
 ) -> np.ndarray:
     """Render a layered scene with shallow depth of field; linear RGB (H, W, 3) float32.
@@ -211,6 +326,8 @@ def render_planes(
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if not (math.isfinite(level_step) and level_step > 0):
         raise ValueError(f"level_step must be a positive number of pixels, got {level_step}")
+    if not (math.isfinite(level_ratio) and 0.0 <= level_ratio < 1.0):
+        raise ValueError(f"level_ratio must be in [0, 1), got {level_ratio}")
     if samples is not None and (
         isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1
     ):
@@ -220,21 +337,18 @@ def render_planes(
 
         return render_exact(planes, focus, max_coc, aperture, samples=samples)
     H, W = planes[0].shape
-    acc = np.zeros((4, H, W), dtype=np.float32)
+    acc = np.zeros((H, W, 3), dtype=np.float32)  # the result, composited in place
     for i, plane in enumerate(planes):
         backmost = i == 0
-        pm = _premultiplied(plane)
+        alpha = np.asarray(plane.alpha, dtype=np.float32)
+        rgb = np.asarray(plane.rgb, dtype=np.float32)
+        box = (0, H, 0, W) if backmost else _bbox(alpha > 0)
+        if box is None:  # fully transparent: nothing to add
+            continue
         d = plane.constant_disparity()
         if d is not None:
-            block, y0, x0 = _blur_constant(pm, float(max_coc) * (d - float(focus)), aperture, backmost)
+            _composite_constant(acc, rgb, alpha, box, float(max_coc) * (d - float(focus)), aperture, backmost)
         else:
-            cmap = np.float32(max_coc) * (plane.disparity_map() - np.float32(focus))
-            alpha_one = backmost and bool(np.all(pm[3] == 1.0))  # then alpha == the weight
-            block, y0, x0 = _blur_varying(pm, cmap, aperture, backmost, level_step, alpha_one)
-        h, w = block.shape[1:]
-        if h == 0 or w == 0:
-            continue
-        region = acc[:, y0 : y0 + h, x0 : x0 + w]
-        region *= 1.0 - block[3]
-        region += block
-    return np.ascontiguousarray(np.moveaxis(acc[:3], 0, 2))
+            _composite_varying(acc, rgb, alpha, plane.disparity_map(), box, max_coc, focus, aperture,
+                               backmost, level_step, level_ratio)
+    return acc

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dofsynth.assets import build_library
-from dofsynth.color import highlight_boost, linear_to_srgb, to_uint8
+from dofsynth.color import highlight_boost, linear_to_srgb8, to_uint8
 from dofsynth.compose import scene_layers
 from dofsynth.config import load_recipe
 from dofsynth.io import encode_exr, encode_png
@@ -50,7 +50,7 @@ def test_pixels_are_what_the_format_says(setup):
     d = decode_sample(m)
     h, w = recipe.frame
     assert d["aif"].shape == (h, w, 3) and d["depth"].shape == (h, w) and d["cover"].shape == (h, w, 2)
-    assert np.array_equal(to_uint8(d["aif"]), to_uint8(linear_to_srgb(layers.aif)))  # not boosted
+    assert np.array_equal(to_uint8(d["aif"]), linear_to_srgb8(layers.aif))  # not boosted
     assert d["depth"].dtype == np.float32 and np.array_equal(d["depth"], layers.disparity)
     assert np.array_equal(to_uint8(d["cover"]), to_uint8(layers.cover))
     hl = scene.options.highlight
@@ -58,7 +58,7 @@ def test_pixels_are_what_the_format_says(setup):
               for p in layers.planes] if hl else layers.planes
     ap = aperture_from_dict(scene.aperture.to_dict())
     for i, t in enumerate(scene.targets):
-        want = to_uint8(linear_to_srgb(np.clip(render_planes(planes, t.focus, t.max_coc, ap), 0, 1)))
+        want = linear_to_srgb8(render_planes(planes, t.focus, t.max_coc, ap))
         assert np.array_equal(to_uint8(d["dof"][i]), want)
 
 
