@@ -197,3 +197,16 @@ def test_linear_colour_decodes_images_and_targets_to_linear_light(data_dir):
     for k in ("image", "target"):
         assert torch.allclose(lin[k], torch.from_numpy(srgb_to_linear(srgb[k].numpy())), atol=1e-6)
     assert torch.equal(lin["signed_lo"], srgb["signed_lo"])
+
+
+def test_the_recorded_corruption_replays_the_disparity_the_network_saw(data_dir):
+    from dofsynth.augment import apply_corruption, layers_from_record
+
+    cfg = resolve(tiny_config(augment={"morph_prob": 1.0, "shift_prob": 1.0, "noise_prob": 1.0}), data_dir)
+    raw = _raw(data_dir)
+    item = decode_sample(raw, cfg, sample_rng(0, 0, "train", 0))
+    params = json.loads(item["corruption"])
+    assert all(m is not None for m in params["morph"]) and params["shift"] and params["noise"]
+    layers = layers_from_record(json.loads(raw["json"]), decode_image(raw["cover.png"]))
+    replay = apply_corruption(decode_exr(raw["depth.exr"]), layers, params)
+    assert np.array_equal(replay, item["disparity"][0].numpy())

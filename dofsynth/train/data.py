@@ -22,7 +22,7 @@ there are fewer shards than ranks x workers every reader opens every shard and k
 (ranks x workers)-th sample instead, so small data sets never leave a reader empty. A shuffle
 buffer mixes samples. Everything random about a sample (target, crop, corruption) comes from
 `np.random.default_rng([seed, epoch, split, index])`, so it does not depend on the number of
-workers or ranks.
+workers or ranks. Batches are not padded: the last batch of a worker may be smaller.
 """
 from __future__ import annotations
 
