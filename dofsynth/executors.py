@@ -232,13 +232,14 @@ class RayExecutor(Executor):
             ray.init(address=self.address, include_dashboard=False, logging_level="WARNING")
         remote = ray.remote(num_cpus=1, max_retries=self.max_retries, retry_exceptions=False)(_ray_shard)
         recipe_ref = ray.put(recipe)
+        out = os.path.abspath(out)  # workers run elsewhere (another cwd, another node)
         window = self.max_in_flight or len(tasks) or 1
         todo, refs = list(tasks), {}
         try:
             def submit():
                 while todo and len(refs) < window:
                     t = todo.pop(0)
-                    refs[remote.remote(recipe_ref, str(out), t.split, t.index, limits[t.split])] = t
+                    refs[remote.remote(recipe_ref, out, t.split, t.index, limits[t.split])] = t
 
             submit()
             if on_submitted is not None:
