@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from dofsynth import builtin_assets as B
-from dofsynth.color import srgb_to_linear
+from dofsynth.color import srgb8_to_linear, srgb_to_linear
 from dofsynth.config import BUILTIN, Recipe
 from dofsynth.io import IMAGE_SUFFIXES, decode_exr, decode_image
 
@@ -76,6 +76,30 @@ def _decode(data: bytes, path: str) -> np.ndarray:
         raise AssetError(f"{path}: not a readable image ({exc})") from exc
 
 
+def _decode_for_load(data: bytes, path: str) -> np.ndarray:
+    """Like `_decode`, but an 8-bit file comes back as its uint8 codes (RGB(A) order), so the
+    loaders linearize through the exact 256-entry table instead of a power per value."""
+    if not path.lower().endswith(".exr"):
+        import cv2
+
+        buf = np.frombuffer(data, dtype=np.uint8)
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+        if img is not None and img.dtype == np.uint8:
+            if img.ndim == 2:
+                return img[:, :, None]
+            if img.shape[2] == 3:
+                return np.ascontiguousarray(img[:, :, ::-1])
+            if img.shape[2] == 4:
+                return np.ascontiguousarray(img[:, :, [2, 1, 0, 3]])
+            return img
+    return _decode(data, path)  # 16 bit, float, EXR, or an error that names the file
+
+
+def _unit(a: np.ndarray) -> np.ndarray:
+    """A channel as float32 in [0, 1] (uint8 codes / 255, as io.decode_image does)."""
+    return a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a
+
+
 def image_header(path: str) -> tuple[int, int, int]:
     """(w, h, channels) from the file header only."""
     import OpenImageIO as oiio
@@ -121,6 +145,8 @@ def _colour_linear(img: np.ndarray, path: str) -> np.ndarray:
     colour = img[:, :, :1] if c in (1, 2) else img[:, :, :3]
     if colour.shape[2] == 1:
         colour = np.repeat(colour, 3, axis=2)
+    if colour.dtype == np.uint8:
+        return srgb8_to_linear(colour)
     if path.lower().endswith(".exr"):
         return np.clip(colour, 0.0, None).astype(np.float32)
     return srgb_to_linear(colour)
@@ -370,11 +396,23 @@ def assign_splits(assets: list[Asset], seed: int, test_share: float, need: dict[
     return {a.id: ("test" if i < n_test else "train") for i, a in enumerate(order)}
 
 
+CACHE_BYTES = 256 * 2**20  # decoded pixels kept per process (a 24 MP photo alone is 288 MB)
+
+
+def _nbytes(value) -> int:
+    return sum(a.nbytes for a in value) if isinstance(value, tuple) else value.nbytes
+
+
 class AssetLibrary:
-    """Sorted background and foreground assets, their split, and loaders (linear float32)."""
+    """Sorted background and foreground assets, their split, and loaders (linear float32).
+
+    Decoded assets are kept in a per-process LRU cache of at most `cache_size` entries and
+    `cache_bytes` bytes of pixels (an asset larger than that is not kept): with thousands of
+    photos a hit is rare, and the bound keeps a worker's memory flat."""
 
     def __init__(self, backgrounds: list[Asset], foregrounds: list[Asset], splits: dict[str, str],
-                 skipped: list[tuple[str, str]] | None = None, cache_size: int = 8):
+                 skipped: list[tuple[str, str]] | None = None, cache_size: int = 8,
+                 cache_bytes: int = CACHE_BYTES):
         self.backgrounds = sorted(backgrounds, key=lambda a: a.id)
         self.foregrounds = sorted(foregrounds, key=lambda a: a.id)
         self._splits = dict(splits)
@@ -382,6 +420,7 @@ class AssetLibrary:
         self._by_id = {a.id: a for a in (*self.backgrounds, *self.foregrounds)}
         self._cache: OrderedDict[str, object] = OrderedDict()
         self._cache_size = cache_size
+        self._cache_bytes = cache_bytes
 
     def __getitem__(self, asset_id: str) -> Asset:
         try:
@@ -403,8 +442,10 @@ class AssetLibrary:
             self._cache.move_to_end(key)
             return self._cache[key]
         value = make()
+        if _nbytes(value) > self._cache_bytes:
+            return value
         self._cache[key] = value
-        while len(self._cache) > self._cache_size:
+        while len(self._cache) > self._cache_size or sum(map(_nbytes, self._cache.values())) > self._cache_bytes:
             self._cache.popitem(last=False)
         return value
 
@@ -421,9 +462,9 @@ class AssetLibrary:
         """Linear-light RGB (H, W, 3) float32, read-only."""
         def make():
             if asset.path.startswith("builtin:"):
-                img = srgb_to_linear(B.background_pixels(asset.path.split("/", 1)[1]) / np.float32(255))
+                img = srgb8_to_linear(B.background_pixels(asset.path.split("/", 1)[1]))
             else:
-                raw = _decode(self._read(asset.path, asset.sha256), asset.path)
+                raw = _decode_for_load(self._read(asset.path, asset.sha256), asset.path)
                 _check_size(asset.path, raw.shape[1], raw.shape[0])
                 img = _colour_linear(raw, asset.path)
             img = np.ascontiguousarray(img, dtype=np.float32)
@@ -436,12 +477,12 @@ class AssetLibrary:
         def make():
             if asset.path.startswith("builtin:"):
                 rgb8, a8 = B.foreground_pixels(asset.path.split("/", 1)[1])
-                rgb, alpha = srgb_to_linear(rgb8 / np.float32(255)), a8.astype(np.float32) / 255
+                rgb, alpha = srgb8_to_linear(rgb8), a8.astype(np.float32) / 255
             else:
-                raw = _decode(self._read(asset.path, asset.sha256), asset.path)
+                raw = _decode_for_load(self._read(asset.path, asset.sha256), asset.path)
                 _check_size(asset.path, raw.shape[1], raw.shape[0])
                 if asset.alpha_path:
-                    araw = _decode(self._read(asset.alpha_path, asset.alpha_sha256), asset.alpha_path)
+                    araw = _decode_for_load(self._read(asset.alpha_path, asset.alpha_sha256), asset.alpha_path)
                     if araw.shape[:2] != raw.shape[:2]:
                         raise AssetError(f"{asset.alpha_path}: alpha is {araw.shape[1]}x{araw.shape[0]} but "
                                          f"its foreground {asset.path} is {raw.shape[1]}x{raw.shape[0]}")
@@ -450,6 +491,7 @@ class AssetLibrary:
                     alpha, name = _alpha_of(raw, asset.path, True), asset.path
                 if (raw.shape[1], raw.shape[0]) != asset.size:
                     raise AssetError(f"{asset.path}: is {raw.shape[1]}x{raw.shape[0]}, scanned as {asset.size}")
+                alpha = _unit(alpha)
                 _check_alpha(alpha, name)
                 alpha = np.clip(alpha, 0.0, 1.0).astype(np.float32)
                 rgb = _colour_linear(raw, asset.path)

@@ -150,11 +150,9 @@ def highlight_boost(
         np.maximum(m, out[..., c], out=m)
     # s(m) > 0 needs srgb(m) > t, i.e. m > decode(t); the margin absorbs float32 rounding.
     lo = float(_srgb_decode64(threshold)) * (1.0 - 1e-3) - 1e-6
-    idx = np.flatnonzero(m > lo)
-    if idx.size:
-        flat = out.reshape(-1, out.shape[-1])
-        px = flat[idx]
-        ms = linear_to_srgb(m.reshape(-1)[idx])
+    idx = np.nonzero(m > lo)  # index tuples also write through a non-contiguous `out`
+    if idx[0].size:
+        ms = linear_to_srgb(m[idx])
         s = np.clip((ms - threshold) / (1.0 - threshold), 0.0, 1.0)
-        flat[idx] = (px * (1.0 + gain * s**power)[:, None]).astype(np.float32)
+        out[idx] = (out[idx] * (1.0 + gain * s**power)[:, None]).astype(np.float32)
     return out

@@ -94,9 +94,11 @@ def place_foreground(rgb: np.ndarray, alpha: np.ndarray, extent, params: ObjectP
         return out_rgb, out_a
     part = small[y0 - params.y:y1 - params.y, x0 - params.x:x1 - params.x]
     pa = np.clip(part[..., 3], 0.0, 1.0)
-    col = np.maximum(part[..., :3], 0.0)
-    # straight colour where alpha > 1e-6, else 0 (out_rgb is zero there already)
-    np.divide(col, pa[..., None], out=out_rgb[y0:y1, x0:x1], where=pa[..., None] > 1e-6)
+    col = np.maximum(part[..., :3], 0.0, out=part[..., :3])  # `small` is our own array
+    # straight colour = premultiplied / alpha where alpha > 1e-6, else 0
+    inv = np.zeros_like(pa)
+    np.divide(np.float32(1.0), pa, out=inv, where=pa > 1e-6)
+    np.multiply(col, inv[..., None], out=out_rgb[y0:y1, x0:x1])
     out_a[y0:y1, x0:x1] = pa
     return out_rgb, out_a
 

@@ -173,8 +173,16 @@ def render_sample(scene, library, recipe) -> dict[str, bytes]:
     highlight = _highlight(options)
     if linear_light and highlight is not None and all(p.rgb.flags.writeable for p in planes):
         # the planes are this call's own fresh arrays: boost in place (no frame-sized copies)
-        for p in planes:
-            highlight_boost(p.rgb, **highlight, out=p.rgb)
+        for i, p in enumerate(planes):
+            rgb = p.rgb
+            if i > 0:  # a cutout's colour is 0 outside its alpha box: only the box can change
+                on = np.asarray(p.alpha) > 0
+                rows = np.flatnonzero(on.any(axis=1))
+                if rows.size == 0:
+                    continue
+                cols = np.flatnonzero(on[rows[0]:rows[-1] + 1].any(axis=0))
+                rgb = rgb[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+            highlight_boost(rgb, **highlight, out=rgb)
         blur_planes = planes
     else:
         blur_planes = boosted_planes(planes, highlight)

@@ -115,19 +115,20 @@ def _compact(m: np.ndarray) -> np.ndarray:
 
 
 def _grab(a: np.ndarray, y0: int, y1: int, x0: int, x1: int, edge: bool) -> np.ndarray:
-    """a[y0:y1, x0:x1] of a 2-D frame array for a box that may leave the frame: outside it,
-    the edge pixel (edge=True) or 0. A view when the box lies inside."""
-    H, W = a.shape
+    """a[y0:y1, x0:x1] of a 2-D frame array (or (H, W, 3)) for a box that may leave the frame:
+    outside it, the edge pixel (edge=True) or 0. A view when the box lies inside."""
+    H, W = a.shape[:2]
     cy0, cy1, cx0, cx1 = max(y0, 0), min(y1, H), max(x0, 0), min(x1, W)
     part = a[cy0:cy1, cx0:cx1]
     pads = (cy0 - y0, y1 - cy1, cx0 - x0, x1 - cx1)
     if not any(pads):
         return part
     if edge:
-        if part.strides[0] == 0 or part.strides[1] == 0:
-            return np.pad(part, ((pads[0], pads[1]), (pads[2], pads[3])), mode="edge")
-        return cv2.copyMakeBorder(np.ascontiguousarray(part), *pads, cv2.BORDER_REPLICATE)
-    out = np.zeros((y1 - y0, x1 - x0), a.dtype)
+        if 0 in part.strides or part.strides[-1] != part.itemsize:
+            widths = ((pads[0], pads[1]), (pads[2], pads[3])) + ((0, 0),) * (a.ndim - 2)
+            return np.pad(np.ascontiguousarray(part), widths, mode="edge")
+        return cv2.copyMakeBorder(part, *pads, cv2.BORDER_REPLICATE)
+    out = np.zeros((y1 - y0, x1 - x0) + a.shape[2:], a.dtype)
     out[pads[0] : pads[0] + part.shape[0], pads[2] : pads[2] + part.shape[1]] = part
     return out
 
@@ -238,9 +239,10 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
     ix = np.clip(np.arange(ex0, ex1), 0, W - 1) if cm.shape[1] > 1 else np.zeros(1, np.intp)
     c_e = cm[np.ix_(iy, ix)]  # compact along broadcast axes
     levels, k0c, fc = level_weights(c_e, level_step, level_ratio)
-    k0 = np.broadcast_to(k0c, (he, we))
-    f = np.broadcast_to(fc, (he, we))
     one = backmost and _is_one(alpha)
+    # A map constant along x (or y) has weights constant along it: the weight channel's blur
+    # is then a 1-D convolution with the kernel's projection (no FFT), kept as a column/row.
+    along = 0 if c_e.shape[1] == 1 else (1 if c_e.shape[0] == 1 else None)
     # Accumulators over O: premultiplied colour (straight into acc for the backmost plane,
     # which is composited over black), alpha (not for an opaque backmost plane) and weight.
     oh, ow = oy1 - oy0, ox1 - ox0
@@ -248,7 +250,7 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
     if backmost:
         col[...] = 0.0
     a_acc = None if backmost else np.zeros((oh, ow), np.float32)
-    w_acc = np.zeros((oh, ow), np.float32)
+    w_acc = np.zeros((oh, 1) if along == 0 else (1, ow) if along == 1 else (oh, ow), np.float32)
     # Level k touches pixels with k0 in {k-1, k}: a superset box from per-row/column ranges.
     rlo, rhi = k0c.min(axis=1), k0c.max(axis=1) + 1
     clo, chi = k0c.min(axis=0), k0c.max(axis=0) + 1
@@ -267,7 +269,8 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         x0, x1 = max(int(cols[0]), smax - s), min(int(cols[-1]) + 1, smax + ow + s)
         if y1 <= y0 or x1 <= x0:
             continue
-        ksub, fsub = k0[y0:y1, x0:x1], f[y0:y1, x0:x1]
+        sub = (slice(y0, y1) if k0c.shape[0] > 1 else slice(None), slice(x0, x1) if k0c.shape[1] > 1 else slice(None))
+        ksub, fsub = k0c[sub], fc[sub]  # compact along a broadcast axis
         wsub = np.where(ksub == k, 1.0 - fsub, 0.0).astype(np.float32)
         wsub += np.where(ksub == k - 1, fsub, 0.0)
         if not wsub.any():
@@ -276,20 +279,26 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         # frame coordinates of the strip, and where its blur lands in O
         fy0, fy1, fx0, fx1 = y0 + ey0, y1 + ey0, x0 + ex0, x1 + ex0
         ty0, tx0 = fy0 - s - oy0, fx0 - s - ox0
-        _add_clipped(w_acc, ty0, tx0, conv.full(wsub))
+        if along == 0:
+            _add_clipped(w_acc, ty0, 0, np.convolve(wsub[:, 0], conv.k.sum(axis=1))[:, None])
+        elif along == 1:
+            _add_clipped(w_acc, 0, tx0, np.convolve(wsub[0], conv.k.sum(axis=0))[None, :])
+        else:
+            _add_clipped(w_acc, ty0, tx0, conv.full(wsub))
         a_sub = None if one else _grab(alpha, fy0, fy1, fx0, fx1, backmost)
         wa = wsub if one else wsub * a_sub
         if a_acc is not None:
-            _add_clipped(a_acc, ty0, tx0, conv.full(wa))
+            _add_clipped(a_acc, ty0, tx0, conv.full(np.broadcast_to(wa, (y1 - y0, x1 - x0))))
+        strip = _grab(rgb, fy0, fy1, fx0, fx1, backmost)  # (h, w, 3), one copy at most
         for ch in range(3):
-            x = _grab(rgb[:, :, ch], fy0, fy1, fx0, fx1, backmost) * wa
-            _add_clipped(col[:, :, ch], ty0, tx0, conv.full(x))
+            _add_clipped(col[:, :, ch], ty0, tx0, conv.full(strip[:, :, ch] * wa))
     np.maximum(w_acc, 1e-12, out=w_acc)
     inv = np.reciprocal(w_acc, out=w_acc)
     if backmost:
         col *= inv[:, :, None]
         return
     a_acc *= inv
+    inv = np.broadcast_to(inv, (oh, ow))
     region = acc[oy0:oy1, ox0:ox1]
     keep = 1.0 - a_acc
     for ch in range(3):
