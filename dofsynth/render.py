@@ -143,9 +143,9 @@ def _add_clipped(dst: np.ndarray, y0: int, x0: int, block: np.ndarray) -> None:
 
 
 def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
-    """Blur a constant-CoC plane over its alpha box and composite it "over" `acc` (H, W, 3),
+    """Blur a constant-CoC plane over its alpha box and composite it "over" `acc` (3, H, W),
     one channel at a time: the blurred alpha first, then each premultiplied colour."""
-    H, W, _ = acc.shape
+    _, H, W = acc.shape
     y0, y1, x0, x1 = box
     s = support_radius(c)
     if backmost:  # the frame, edge-replicated S px beyond it: its blur covers the frame
@@ -168,7 +168,7 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
     for ch in range(3):
         src = _grab(rgb[:, :, ch], gy0, gy1, gx0, gx1, backmost)
         x = src if one else src * a_src
-        region = acc[oy0:oy1, ox0:ox1, ch]
+        region = acc[ch, oy0:oy1, ox0:ox1]
         if keep is None:  # opaque: "over" replaces what lies behind
             region[...] = blurred(x)
         else:
@@ -225,7 +225,7 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
     the frame the colour is edge-replicated for the backmost plane and zero otherwise, the CoC
     map is always edge-replicated). A map that is a broadcast row or column (a ramp) keeps its
     levels as one row or column."""
-    H, W, _ = acc.shape
+    _, H, W = acc.shape
     cm = np.float32(max_coc) * (_compact(np.asarray(dmap, dtype=np.float32)) - np.float32(focus))
     smax = support_radius(max(abs(float(cm.min())), abs(float(cm.max()))))
     if backmost:
@@ -246,7 +246,7 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
     # Accumulators over O: premultiplied colour (straight into acc for the backmost plane,
     # which is composited over black), alpha (not for an opaque backmost plane) and weight.
     oh, ow = oy1 - oy0, ox1 - ox0
-    col = acc[oy0:oy1, ox0:ox1] if backmost else np.zeros((oh, ow, 3), np.float32)
+    col = acc[:, oy0:oy1, ox0:ox1] if backmost else np.zeros((3, oh, ow), np.float32)
     if backmost:
         col[...] = 0.0
     a_acc = None if backmost else np.zeros((oh, ow), np.float32)
@@ -291,20 +291,20 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
             _add_clipped(a_acc, ty0, tx0, conv.full(np.broadcast_to(wa, (y1 - y0, x1 - x0))))
         strip = _grab(rgb, fy0, fy1, fx0, fx1, backmost)  # (h, w, 3), one copy at most
         for ch in range(3):
-            _add_clipped(col[:, :, ch], ty0, tx0, conv.full(strip[:, :, ch] * wa))
+            _add_clipped(col[ch], ty0, tx0, conv.full(strip[:, :, ch] * wa))
     np.maximum(w_acc, 1e-12, out=w_acc)
     inv = np.reciprocal(w_acc, out=w_acc)
     if backmost:
-        col *= inv[:, :, None]
+        col *= inv[None]
         return
     a_acc *= inv
     inv = np.broadcast_to(inv, (oh, ow))
-    region = acc[oy0:oy1, ox0:ox1]
+    region = acc[:, oy0:oy1, ox0:ox1]
     keep = 1.0 - a_acc
     for ch in range(3):
-        col[:, :, ch] *= inv
-        region[:, :, ch] *= keep
-        region[:, :, ch] += col[:, :, ch]
+        col[ch] *= inv
+        region[ch] *= keep
+        region[ch] += col[ch]
 
 
 def render_planes(
@@ -346,7 +346,7 @@ def render_planes(
 
         return render_exact(planes, focus, max_coc, aperture, samples=samples)
     H, W = planes[0].shape
-    acc = np.zeros((H, W, 3), dtype=np.float32)  # the result, composited in place
+    acc = np.zeros((3, H, W), dtype=np.float32)  # planar: contiguous per-channel updates
     for i, plane in enumerate(planes):
         backmost = i == 0
         alpha = np.asarray(plane.alpha, dtype=np.float32)
@@ -360,4 +360,7 @@ def render_planes(
         else:
             _composite_varying(acc, rgb, alpha, plane.disparity_map(), box, max_coc, focus, aperture,
                                backmost, level_step, level_ratio)
-    return acc
+    out = np.empty((H, W, 3), dtype=np.float32)
+    for ch in range(3):
+        out[:, :, ch] = acc[ch]
+    return out
