@@ -108,7 +108,8 @@ def linear_to_srgb8(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         b = min(a + _CHUNK, flat_in.size)
         n = b - a
         tt, ii, cc = t[:n], i[:n], cmp[:n]
-        np.multiply(flat_in[a:b], np.float32(ENCODE_BINS), out=tt)
+        with np.errstate(over="ignore"):  # huge values become inf, then ENCODE_BINS
+            np.multiply(flat_in[a:b], np.float32(ENCODE_BINS), out=tt)
         np.fmax(tt, np.float32(0.0), out=tt)  # fmax/fmin: NaN -> 0
         np.fmin(tt, np.float32(ENCODE_BINS), out=tt)
         ii[...] = tt  # truncation = floor for t >= 0
@@ -145,14 +146,15 @@ def highlight_boost(
         out = linear.copy()
     elif out is not linear:
         out[...] = linear
-    m = out[..., 0].copy()  # max over channels (numpy's reduce over a short last axis is slow)
-    for c in range(1, out.shape[-1]):
-        np.maximum(m, out[..., c], out=m)
+    work = out if out.ndim > 1 else out[None]  # a single pixel: a (1, C) view of it
+    m = work[..., 0].copy()  # max over channels (numpy's reduce over a short last axis is slow)
+    for c in range(1, work.shape[-1]):
+        np.maximum(m, work[..., c], out=m)
     # s(m) > 0 needs srgb(m) > t, i.e. m > decode(t); the margin absorbs float32 rounding.
     lo = float(_srgb_decode64(threshold)) * (1.0 - 1e-3) - 1e-6
     idx = np.nonzero(m > lo)  # index tuples also write through a non-contiguous `out`
     if idx[0].size:
         ms = linear_to_srgb(m[idx])
         s = np.clip((ms - threshold) / (1.0 - threshold), 0.0, 1.0)
-        out[idx] = (out[idx] * (1.0 + gain * s**power)[:, None]).astype(np.float32)
+        work[idx] = (work[idx] * (1.0 + gain * s**power)[:, None]).astype(np.float32)
     return out

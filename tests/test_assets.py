@@ -301,3 +301,29 @@ def test_header_mode_still_decodes_mattes(write_recipe, tiny_bg_dir, tiny_fg_pai
                                                  verify="header")))
     assert "empty alpha" in dict(lib.skipped)[str(tiny_fg_pairs / "fg" / "empty.png")]
     assert all(a.bbox is not None and a.bbox[2] < a.size[0] for a in lib.foregrounds)
+
+
+def test_8bit_loads_use_the_exact_table_and_the_cache_is_bounded(write_recipe, shared_assets):
+    from dofsynth.assets import AssetLibrary
+    from dofsynth.color import srgb_to_linear
+    from dofsynth.io import decode_image
+
+    lib = build_library(load_recipe(write_recipe(backgrounds=shared_assets / "bg", foregrounds=shared_assets)))
+    bg = lib["bg/kodak_kodim01"]
+    img = lib.load_background(bg)
+    want = srgb_to_linear(decode_image((shared_assets / "bg" / "kodak_kodim01.png").read_bytes())[..., :3])
+    assert img.dtype == np.float32 and not img.flags.writeable
+    np.testing.assert_allclose(img, want, rtol=2e-6, atol=1e-9)  # table vs float32 formula: rounding only
+    car = lib["fg/rembg_car-2"]
+    rgb, alpha = lib.load_foreground(car)
+    a8 = cv2.imread(str(shared_assets / "alpha" / "rembg_car-2.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(alpha, (a8 if a8.ndim == 2 else a8[..., -1]).astype(np.float32) / 255.0)
+    assert lib.load_background(bg) is img  # cached
+    small = AssetLibrary(lib.backgrounds, lib.foregrounds, {a.id: lib.split_of(a) for a in (*lib.backgrounds, *lib.foregrounds)},
+                         cache_bytes=img.nbytes - 1)
+    first = small.load_background(bg)
+    assert small.load_background(bg) is not first and np.array_equal(small.load_background(bg), first)  # too big to keep
+    two = AssetLibrary(lib.backgrounds, lib.foregrounds, {a.id: lib.split_of(a) for a in (*lib.backgrounds, *lib.foregrounds)},
+                       cache_bytes=int(img.nbytes * 1.5))
+    a, b = two.load_background(bg), two.load_background(lib["bg/kodak_kodim08"])
+    assert two.load_background(lib["bg/kodak_kodim08"]) is b and two.load_background(bg) is not a  # evicted by bytes

@@ -136,3 +136,20 @@ def test_a_changed_asset_is_refused(layers_of, smoke_library):
     bad = replace(s, assets={**s.assets, "front": replace(s.assets["front"], sha256="0" * 64)})
     with pytest.raises(ValueError, match="front asset .* changed"):
         scene_layers(bad, smoke_library)
+
+
+def test_background_plane_holds_no_frame_sized_alpha_or_disparity(layers_of):
+    """Memory at large sizes: the background's alpha is a broadcast 1 and its disparity a float
+    (flat) or a broadcast row/column (ramp) that equals background_disparity."""
+    for s, L in layers_of:
+        bg = L.planes[0]
+        H, W = s.size
+        assert bg.alpha.shape == (H, W) and bg.alpha.strides == (0, 0) and not bg.alpha.flags.writeable
+        b = s.background
+        want = background_disparity(b.mode, b.b0, b.b1, b.direction, H, W)
+        if b.mode == "flat":
+            assert isinstance(bg.disparity, float) and bg.disparity == want[0, 0]
+        else:
+            assert 0 in bg.disparity.strides and np.array_equal(bg.disparity, want)
+        for p in L.planes:  # the renderer may boost colour in place: planes own their colour
+            assert p.rgb.flags.writeable

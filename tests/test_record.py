@@ -136,3 +136,21 @@ def test_record_json_is_canonical():
         encode_record({"x": float("nan")})
     with pytest.raises(ValueError, match=r"\(H, W, 2\)"):
         encode_cover(np.zeros((4, 4, 3)))
+
+
+def test_cover_from_alphas_is_the_cover_png(setup):
+    from dofsynth.record import encode_alphas
+
+    g = np.random.default_rng(5)
+    front, middle = g.random((2, 30, 40), dtype=np.float32)
+    front[:5] = 0.0
+    png = encode_alphas(front, middle)
+    assert png == encode_cover(np.stack([front, middle], axis=2))
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)[:, :, ::-1]
+    np.testing.assert_array_equal(img[..., 0], to_uint8(front))
+    np.testing.assert_array_equal(img[..., 1], to_uint8(middle))
+    assert not img[..., 2].any()
+    with pytest.raises(ValueError, match="cover"):
+        encode_alphas(front, middle[:, :3])

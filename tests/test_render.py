@@ -263,3 +263,63 @@ def test_exact_mode_orientation_and_samples():
         assert np.abs(ex - lay).max() < 0.2 * np.abs(flipped - lay).max()  # measured 0.12
         few = render_planes([opaque(img, d)], 0.5, 20.0, tri, method="exact", samples=300)
         assert np.abs(few - ex).mean() < 1e-3
+
+
+def test_broadcast_ramp_equals_the_full_map():
+    """A ramp given as a broadcast column or row (as scene_layers makes it) takes the 1-D weight
+    path; it must equal the same map stored in full, for the backmost plane and a cutout."""
+    g = rng(10)
+    h, w = 60, 84
+    img = g.random((h, w, 3), dtype=np.float32)
+    fg = g.random((h, w, 3), dtype=np.float32)
+    a = np.zeros((h, w), np.float32)
+    a[15:45, 20:60] = g.random((30, 40), dtype=np.float32)
+    for line in (np.linspace(0.1, 0.6, h, dtype=np.float32)[:, None],
+                 np.linspace(0.6, 0.1, w, dtype=np.float32)[None, :]):
+        view = np.broadcast_to(line, (h, w))
+        full = np.ascontiguousarray(view)
+        for ap in (Disk(), Polygon(5, 10.0)):
+            for make in (lambda d: [opaque(img, d)],
+                         lambda d: [Plane(img, np.broadcast_to(np.float32(1), (h, w)), d)],
+                         lambda d: [black(h, w), Plane(fg, a, d)]):
+                for focus in (0.95, 0.3):
+                    np.testing.assert_allclose(render_planes(make(view), focus, 20.0, ap),
+                                               render_planes(make(full), focus, 20.0, ap), atol=1e-6)
+
+
+def test_level_grid_spacing():
+    from dofsynth.render import LEVEL_RATIO, level_grid
+
+    np.testing.assert_allclose(level_grid(-3.0, 1.0, 0.5, 0.0), np.arange(-3.0, 1.01, 0.5))
+    lv = level_grid(-40.0, 30.0, 0.5, 1 / 32)
+    gaps = np.diff(lv)
+    assert lv[0] == -40.0 and lv[-2] < 30.0 <= lv[-1]
+    np.testing.assert_allclose(gaps, np.maximum(0.5, np.abs(lv[:-1]) / 32))
+    big = level_grid(-120.0, -40.0, 0.5, 1 / 32)  # CoC of a 4096 px frame: ~36 levels, not 161
+    assert big.size < 0.3 * level_grid(-120.0, -40.0, 0.5, 0.0).size
+    assert level_grid(-7.0, -7.0, 0.5, LEVEL_RATIO).tolist() == [-7.0]
+
+
+def test_relative_level_spacing_is_continuous_and_accurate():
+    """Large CoC on a ramp (where the relative spacing thins the levels out): continuous in the
+    focus, and within the documented bound of a fine fixed-step reference."""
+    g = rng(11)
+    h, w = 72, 96
+    img = smooth_image(h, w, g)
+    ramp = np.broadcast_to(np.linspace(0.1, 0.6, h, dtype=np.float32)[:, None], (h, w))
+    planes = [opaque(img, ramp)]  # CoC -28.8 .. -12.8 px at focus 1
+    ref = render_planes(planes, 1.0, 32.0, level_step=0.05, level_ratio=0.0)
+    out = render_planes(planes, 1.0, 32.0)
+    err = np.abs(out - ref)
+    assert err.max() < 2e-3 and err.mean() < 1e-4, (err.max(), err.mean())  # docs/rendering.md table
+    outs = [render_planes(planes, f, 32.0) for f in np.linspace(0.98, 1.0, 21)]
+    steps = [np.abs(b - a).max() for a, b in zip(outs, outs[1:])]
+    assert max(steps) < 0.01 and max(steps) < 2 * np.median(steps)
+
+
+def test_transparent_plane_changes_nothing():
+    g = rng(12)
+    img = g.random((40, 50, 3), dtype=np.float32)
+    base = [opaque(img, 0.2)]
+    ghost = Plane(g.random((40, 50, 3), dtype=np.float32), np.zeros((40, 50), np.float32), 0.9)
+    np.testing.assert_array_equal(render_planes(base + [ghost], 0.5, 10.0), render_planes(base, 0.5, 10.0))
