@@ -57,6 +57,12 @@ class Executor:
     def describe(self) -> str:
         return self.name
 
+    def prepare(self) -> None:
+        """Connect or start up before `generate` touches OUT (a failure leaves OUT as it was)."""
+
+    def close(self) -> None:
+        """Release what `prepare` started."""
+
     def run(self, recipe, out: Path, tasks: list[ShardTask], limits: dict, on_samples: OnSamples | None = None,
             on_submitted: Callable[[], None] | None = None) -> Iterator[ShardDone]:
         """Make every task's shard in `out`; yield a ShardDone per finished shard. Calls
@@ -224,12 +230,32 @@ class RayExecutor(Executor):
     def describe(self) -> str:
         return f"ray{' ' + self.address if self.address else ''}, max {self.max_retries} retries"
 
+    _own = False
+
+    def prepare(self) -> None:
+        import ray
+
+        if ray.is_initialized():
+            return
+        try:
+            ray.init(address=self.address, include_dashboard=False, logging_level="WARNING")
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            where = f"--address {self.address}" if self.address else "a local Ray instance"
+            raise ValueError(f"--executor ray: cannot start or join {where}: {exc} (start a cluster with "
+                             "`ray start --head`, then pass --address auto on that node)") from exc
+        self._own = True
+
+    def close(self) -> None:
+        if self._own:
+            import ray
+
+            ray.shutdown()
+            self._own = False
+
     def run(self, recipe, out, tasks, limits, on_samples=None, on_submitted=None):
         import ray
 
-        own = not ray.is_initialized()
-        if own:
-            ray.init(address=self.address, include_dashboard=False, logging_level="WARNING")
+        self.prepare()
         remote = ray.remote(num_cpus=1, max_retries=self.max_retries, retry_exceptions=False)(_ray_shard)
         recipe_ref = ray.put(recipe)
         out = os.path.abspath(out)  # workers run elsewhere (another cwd, another node)
@@ -260,13 +286,16 @@ class RayExecutor(Executor):
                     yield ShardDone(t, info, seconds, rss)
                 submit()
         finally:
-            for ref in refs:
+            if refs:  # stopped early: cancel the rest and wait until none still writes into OUT
+                for ref in refs:
+                    try:
+                        ray.cancel(ref, force=True)
+                    except Exception:
+                        pass
                 try:
-                    ray.cancel(ref, force=True)
+                    ray.wait(list(refs), num_returns=len(refs), timeout=30)
                 except Exception:
                     pass
-            if own:
-                ray.shutdown()
 
 
 def make_executor(name: str = "local", *, workers: int | None = None, address: str | None = None,

@@ -547,9 +547,16 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
         split_size(recipe, s, limit)  # validates split and limit
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a folder")
-    if shard_range is not None:
-        return _generate_range(recipe, out, executor, splits, limit, resume, progress, shard_range, t0)
+    executor.prepare()  # e.g. join the Ray cluster, before OUT is touched
+    try:
+        if shard_range is not None:
+            return _generate_range(recipe, out, executor, splits, limit, resume, progress, shard_range, t0)
+        return _generate_all(recipe, out, executor, splits, limit, resume, progress, t0)
+    finally:
+        executor.close()
 
+
+def _generate_all(recipe, out: Path, executor, splits, limit, resume, progress, t0) -> GenerateResult:
     with OutputLock(out):
         entries = _entries(out)
         if entries and not resume:

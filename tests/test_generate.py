@@ -370,3 +370,24 @@ def test_skipped_assets_are_relative_to_the_recipe_folder(tmp_path, monkeypatch)
         assert str(tmp_path) not in json.dumps(res.manifest["skipped_assets"])
         manifests.append((where / "out" / "manifest.json").read_bytes())
     assert manifests[0] == manifests[1]
+
+
+def test_two_range_processes_at_once_into_one_out(recipe, reference, tmp_path):
+    """A job array for real: two processes write disjoint ranges into one OUT at the same time."""
+    out = tmp_path / "jobarray"
+    procs = [subprocess.Popen([sys.executable, "-c", _SLOW_RUN, "generate", str(SMOKE), "--out", str(out),
+                               "--shards", rng, "--resume", "--quiet"], stderr=subprocess.PIPE)
+             for rng in ("0:2", "2:4")]
+    try:
+        both, deadline = False, time.monotonic() + 60
+        while not both and all(p.poll() is None for p in procs) and time.monotonic() < deadline:
+            both = all((out / f".lock.part-{r}").exists() for r in ("000000-000002", "000002-000004"))
+            time.sleep(0.01)
+        errs = [p.communicate(timeout=120)[1].decode() for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
+    assert [p.returncode for p in procs] == [0, 0], errs
+    assert both, "the two ranges never ran at the same time"
+    assert _merge(out) == 0
+    assert _files(out) == _files(reference[0])
