@@ -93,8 +93,9 @@ def place_foreground(rgb: np.ndarray, alpha: np.ndarray, extent, params: ObjectP
     if x1 <= x0 or y1 <= y0:
         return out_rgb, out_a
     part = small[y0 - params.y:y1 - params.y, x0 - params.x:x1 - params.x]
-    pa = np.clip(part[..., 3], 0.0, 1.0)
-    col = np.maximum(part[..., :3], 0.0, out=part[..., :3])  # `small` is our own array
+    np.maximum(small, 0.0, out=small)  # `small` is our own array; contiguous is fastest
+    pa = np.minimum(part[..., 3], 1.0)
+    col = part[..., :3]
     # straight colour = premultiplied / alpha where alpha > 1e-6, else 0
     inv = np.zeros_like(pa)
     np.divide(np.float32(1.0), pa, out=inv, where=pa > 1e-6)

@@ -119,7 +119,7 @@ def encode_png8(img: np.ndarray) -> bytes:
         arr = to_uint8(arr)
     if arr.ndim != 3 or arr.shape[2] != 3:
         raise ValueError(f"PNG member must be (H, W, 3), got shape {arr.shape}")
-    return _encode_bgr(arr[:, :, ::-1], PNG_PARAMS)
+    return _encode_bgr(cv2.cvtColor(np.ascontiguousarray(arr), cv2.COLOR_RGB2BGR), PNG_PARAMS)
 
 
 def encode_srgb_png(linear: np.ndarray) -> bytes:

@@ -124,9 +124,8 @@ def _grab(a: np.ndarray, y0: int, y1: int, x0: int, x1: int, edge: bool) -> np.n
     if not any(pads):
         return part
     if edge:
-        if 0 in part.strides or part.strides[-1] != part.itemsize:
-            widths = ((pads[0], pads[1]), (pads[2], pads[3])) + ((0, 0),) * (a.ndim - 2)
-            return np.pad(np.ascontiguousarray(part), widths, mode="edge")
+        if 0 in part.strides or part.strides[-1] != part.itemsize:  # cv2 wants unit inner strides
+            part = np.ascontiguousarray(part)
         return cv2.copyMakeBorder(part, *pads, cv2.BORDER_REPLICATE)
     out = np.zeros((y1 - y0, x1 - x0) + a.shape[2:], a.dtype)
     out[pads[0] : pads[0] + part.shape[0], pads[2] : pads[2] + part.shape[1]] = part
@@ -360,7 +359,4 @@ def render_planes(
         else:
             _composite_varying(acc, rgb, alpha, plane.disparity_map(), box, max_coc, focus, aperture,
                                backmost, level_step, level_ratio)
-    out = np.empty((H, W, 3), dtype=np.float32)
-    for ch in range(3):
-        out[:, :, ch] = acc[ch]
-    return out
+    return cv2.merge([acc[0], acc[1], acc[2]])  # (H, W, 3) float32
