@@ -146,7 +146,20 @@ def highlight_boost(
         out = linear.copy()
     elif out is not linear:
         out[...] = linear
-    work = out if out.ndim > 1 else out[None]  # a single pixel: a (1, C) view of it
+    if out.ndim == 3 and out.shape[0] > _BOOST_ROWS:  # row blocks: small temporaries at any size
+        for r in range(0, out.shape[0], _BOOST_ROWS):
+            block = out[r:r + _BOOST_ROWS]
+            _boost_block(block, threshold, gain, power)
+        return out
+    _boost_block(out if out.ndim > 1 else out[None], threshold, gain, power)  # one pixel: (1, C)
+    return out
+
+
+_BOOST_ROWS = 128
+
+
+def _boost_block(work: np.ndarray, threshold: float, gain: float, power: float) -> None:
+    """highlight_boost in place on a (..., C) float32 block (any strides)."""
     m = work[..., 0].copy()  # max over channels (numpy's reduce over a short last axis is slow)
     for c in range(1, work.shape[-1]):
         np.maximum(m, work[..., c], out=m)
@@ -157,4 +170,3 @@ def highlight_boost(
         ms = linear_to_srgb(m[idx])
         s = np.clip((ms - threshold) / (1.0 - threshold), 0.0, 1.0)
         work[idx] = (work[idx] * (1.0 + gain * s**power)[:, None]).astype(np.float32)
-    return out

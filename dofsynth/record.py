@@ -141,8 +141,9 @@ def encode_alphas(front: np.ndarray, middle: np.ndarray) -> bytes:
     if front.ndim != 2 or front.shape != middle.shape:
         raise ValueError(f"cover alphas must be two (H, W) maps, got shapes {front.shape}, {middle.shape}")
     bgr = np.zeros(front.shape + (3,), np.uint8)
-    bgr[:, :, 2] = to_uint8(front)
-    bgr[:, :, 1] = to_uint8(middle)
+    for r in range(0, front.shape[0], 128):  # row blocks: small, cache-resident temporaries
+        bgr[r:r + 128, :, 2] = to_uint8(front[r:r + 128])
+        bgr[r:r + 128, :, 1] = to_uint8(middle[r:r + 128])
     return _encode_bgr(bgr, COVER_PNG_PARAMS)
 
 

@@ -42,39 +42,74 @@ def _kernel_spectrum(k: np.ndarray, n0: int, n1: int) -> np.ndarray:
     return sfft.fft(part, n=n0, axis=0)
 
 
+# FFT convolutions whose padded side exceeds TILE_ABOVE run as overlap-add over tiles with an
+# FFT side of about TILE_FFT: the FFT's cost per pixel grows with its size (cache misses), and
+# tile-sized spectra come back from the allocator instead of fresh frame-sized ones.
+TILE_FFT = 1024
+TILE_ABOVE = 1536
+
+
 class _Conv:
     """Linear convolution of (h, w) float32 channels with one kernel, sharing its spectrum.
 
     `full(x)` returns the (h + 2S, w + 2S) full convolution: input pixel (i, j) spreads over
     output rows i .. i + 2S and columns j .. j + 2S (output (i + S, j + S) is its centre), so
-    the input needs no zero margin. Small kernels use cv2.filter2D, large ones one float32 FFT
-    per channel (next_fast_len sizes, at most one channel's spectrum alive at a time)."""
+    the input needs no zero margin. `add_into` adds it to a destination tile by tile. Small
+    kernels use cv2.filter2D, large ones float32 FFTs (next_fast_len sizes; one channel, and
+    for large inputs one tile, at a time)."""
 
     def __init__(self, signed_radius: float, aperture: Aperture, h: int, w: int):
         self.s = s = support_radius(signed_radius)
         self.k = kernel(aperture, signed_radius)
         self.h, self.w = h, w
         self.direct = s <= SMALL_KERNEL
+        self.ty, self.tx = h, w
         if self.direct:
             self.flipped = np.ascontiguousarray(self.k[::-1, ::-1])
         else:
-            self.n0 = sfft.next_fast_len(h + 2 * s, real=True)
-            self.n1 = sfft.next_fast_len(w + 2 * s, real=True)
+            block = sfft.next_fast_len(max(TILE_FFT, 4 * s), real=True)
+            if h + 2 * s > TILE_ABOVE:
+                self.ty = block - 2 * s
+            if w + 2 * s > TILE_ABOVE:
+                self.tx = block - 2 * s
+            self.n0 = sfft.next_fast_len(self.ty + 2 * s, real=True)
+            self.n1 = sfft.next_fast_len(self.tx + 2 * s, real=True)
             self.spec = _kernel_spectrum(self.k, self.n0, self.n1)
 
-    def full(self, x: np.ndarray) -> np.ndarray:
-        s, h, w = self.s, self.h, self.w
-        if s == 0:
-            return x
+    def _block(self, x: np.ndarray) -> np.ndarray:
+        """Full convolution of one block of at most (ty, tx) pixels."""
+        s = self.s
+        bh, bw = x.shape
         if self.direct:
             pad = cv2.copyMakeBorder(np.ascontiguousarray(x, dtype=np.float32), 2 * s, 2 * s, 2 * s, 2 * s,
                                      cv2.BORDER_CONSTANT, value=0)
             out = cv2.filter2D(pad, -1, self.flipped, anchor=(s, s), borderType=cv2.BORDER_CONSTANT)
-            return out[s : s + h + 2 * s, s : s + w + 2 * s]
+            return out[s : s + bh + 2 * s, s : s + bw + 2 * s]
         spec = sfft.rfft2(x, s=(self.n0, self.n1))
         spec *= self.spec
         out = sfft.irfft2(spec, s=(self.n0, self.n1), overwrite_x=True)
-        return out[: h + 2 * s, : w + 2 * s]
+        return out[: bh + 2 * s, : bw + 2 * s]
+
+    def add_into(self, tile, dst: np.ndarray, oy: int, ox: int) -> None:
+        """dst[oy + p, ox + q] += full[p, q] where it lies inside dst; the input comes from
+        `tile(y0, y1, x0, x1)` -> input[y0:y1, x0:x1] (overlap-add over tiles)."""
+        if self.s == 0:
+            _add_clipped(dst, oy, ox, tile(0, self.h, 0, self.w))
+            return
+        for y0 in range(0, self.h, self.ty):
+            y1 = min(y0 + self.ty, self.h)
+            for x0 in range(0, self.w, self.tx):
+                x1 = min(x0 + self.tx, self.w)
+                _add_clipped(dst, oy + y0, ox + x0, self._block(tile(y0, y1, x0, x1)))
+
+    def full(self, x: np.ndarray) -> np.ndarray:
+        if self.s == 0:
+            return x
+        if self.ty == self.h and self.tx == self.w:
+            return self._block(x)
+        out = np.zeros((self.h + 2 * self.s, self.w + 2 * self.s), np.float32)
+        self.add_into(lambda y0, y1, x0, x1: x[y0:y1, x0:x1], out, 0, 0)
+        return out
 
 
 def convolve(x: np.ndarray, signed_radius: float, aperture: Aperture) -> np.ndarray:
@@ -119,6 +154,11 @@ def _grab(a: np.ndarray, y0: int, y1: int, x0: int, x1: int, edge: bool) -> np.n
     outside it, the edge pixel (edge=True) or 0. A view when the box lies inside."""
     H, W = a.shape[:2]
     cy0, cy1, cx0, cx1 = max(y0, 0), min(y1, H), max(x0, 0), min(x1, W)
+    if cy1 <= cy0 or cx1 <= cx0:  # wholly outside the frame
+        if not edge:
+            return np.zeros((y1 - y0, x1 - x0) + a.shape[2:], a.dtype)
+        iy, ix = np.clip(np.arange(y0, y1), 0, H - 1), np.clip(np.arange(x0, x1), 0, W - 1)
+        return a[iy[:, None], ix[None, :]]
     part = a[cy0:cy1, cx0:cx1]
     pads = (cy0 - y0, y1 - cy1, cx0 - x0, x1 - cx1)
     if not any(pads):
@@ -153,6 +193,14 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
         gy0, gy1, gx0, gx1 = y0, y1, x0, x1
     h, w = gy1 - gy0, gx1 - gx0
     conv = _Conv(c, aperture, h, w)
+    if backmost:  # acc is still black: add the blur straight into it, tile by tile
+        one = _is_one(alpha)
+        for ch in range(3):
+            def tile(y0, y1, x0, x1, ch=ch):
+                x = _grab(rgb[:, :, ch], gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True)
+                return x if one else x * _grab(alpha, gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True)
+            conv.add_into(tile, acc[ch], gy0 - s, gx0 - s)
+        return
     # output region of the blur in frame coordinates, clipped
     oy0, ox0 = max(gy0 - s, 0), max(gx0 - s, 0)
     oy1, ox1 = min(gy1 + s, H), min(gx1 + s, W)

@@ -323,3 +323,26 @@ def test_transparent_plane_changes_nothing():
     base = [opaque(img, 0.2)]
     ghost = Plane(g.random((40, 50, 3), dtype=np.float32), np.zeros((40, 50), np.float32), 0.9)
     np.testing.assert_array_equal(render_planes(base + [ghost], 0.5, 10.0), render_planes(base, 0.5, 10.0))
+
+
+def test_tiled_fft_convolution_equals_the_whole_frame(monkeypatch):
+    """Large convolutions run as overlap-add over FFT tiles: the same result as one FFT."""
+    import dofsynth.render as R
+
+    g = rng(13)
+    h, w = 90, 130
+    img = g.random((h, w, 3), dtype=np.float32)
+    fg = g.random((h, w, 3), dtype=np.float32)
+    a = np.zeros((h, w), np.float32)
+    a[10:80, 20:120] = g.random((70, 100), dtype=np.float32)
+    ramp = np.broadcast_to(np.linspace(0.1, 0.5, h, dtype=np.float32)[:, None], (h, w))
+    scenes = [[opaque(img, 0.2), Plane(fg, a, 0.7)],
+              [Plane(img, g.random((h, w), dtype=np.float32), 0.3)],
+              [opaque(img, ramp), Plane(fg, a, np.full((h, w), 0.8, np.float32) - ramp * 0.1)]]
+    whole = [render_planes(p, 0.95, 24.0, Polygon(6)) for p in scenes]
+    monkeypatch.setattr(R, "TILE_ABOVE", 40)
+    monkeypatch.setattr(R, "TILE_FFT", 40)
+    conv = R._Conv(10.3, Disk(), h, w)
+    assert conv.ty < h and conv.tx < w  # really tiled
+    for p, ref in zip(scenes, whole):
+        np.testing.assert_allclose(render_planes(p, 0.95, 24.0, Polygon(6)), ref, atol=2e-6)
