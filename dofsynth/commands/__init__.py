@@ -1,1 +1,38 @@
-"""One module per `dofsynth` subcommand; each defines `register(subparsers)` (see dofsynth.cli)."""
+"""One module per `dofsynth` subcommand; each defines `register(subparsers)` (see dofsynth.cli).
+
+Shared argparse value types live here, so every command words its errors the same way.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+
+
+def int_at_least(lo: int):
+    """An argparse `type` for an integer >= lo."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {lo}, got {v}")
+        return v
+
+    return parse
+
+
+def float_at_least(lo: float):
+    """An argparse `type` for a finite number >= lo."""
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(v) or v < lo:
+            raise argparse.ArgumentTypeError(f"expected a finite number >= {lo:g}, got {text!r}")
+        return v
+
+    return parse

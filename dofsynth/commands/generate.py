@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dofsynth.commands import int_at_least
+
 DESCRIPTION = """\
 Render the data set a recipe describes into OUT: WebDataset tar shards OUT/train/*.tar and
 OUT/test/*.tar (each sample: aif.png, depth.exr, cover.png, dof.N.png, json; see docs/FORMAT.md)
@@ -32,24 +34,8 @@ See docs/generate.md ("Running a large job").
 """
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {v}")
-    return v
-
-
-def _count(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {v}")
-    return v
+_positive_int = int_at_least(1)
+_count = int_at_least(0)
 
 
 def register(subparsers) -> None:

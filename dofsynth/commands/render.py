@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dofsynth.commands import float_at_least
+
 DESCRIPTION = """\
 Render synthetic shallow depth of field for a single photo and its disparity map, in linear
 light. The photo is treated as ONE opaque plane whose disparity varies per pixel: each pixel is
@@ -38,14 +40,7 @@ def _focus_at(text: str) -> tuple[int, int]:
     return x, y
 
 
-def _nonneg(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not np.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
-    return v
+_nonneg = float_at_least(0.0)
 
 
 def register(subparsers) -> None:
