@@ -162,3 +162,14 @@ def demo_recipe():
     from dofsynth.config import load_recipe
 
     return load_recipe(ROOT / "recipes" / "demo.toml")
+
+
+@pytest.fixture(scope="session")
+def smoke_set(tmp_path_factory, smoke_recipe) -> Path:
+    """The real smoke data set (recipes/smoke.toml: 64 px, 6 train + 2 test, 2 per shard),
+    generated once per test process. Treat it as read-only: copy it before damaging it."""
+    from dofsynth.generate import generate
+
+    out = tmp_path_factory.mktemp("smoke") / "set"
+    generate(smoke_recipe, out, progress=False)
+    return out

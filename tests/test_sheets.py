@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import re
+import shutil
 from pathlib import Path
 
 import cv2
@@ -17,13 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def smoke(tmp_path_factory) -> Path:
-    from dofsynth.config import load_recipe
-    from dofsynth.generate import generate
-
-    out = tmp_path_factory.mktemp("sheets") / "set"
-    generate(load_recipe(ROOT / "recipes" / "smoke.toml"), out, progress=False)
-    return out
+def smoke(smoke_set) -> Path:
+    return smoke_set
 
 
 @pytest.fixture(scope="module")
@@ -132,11 +128,12 @@ def test_sample_choice_is_deterministic(smoke):
 
 
 def test_default_path_and_cli(smoke, tmp_path, capsys):
-    p = sheets.write_sheet(smoke)                     # the test split, into the data set folder
-    assert p == smoke / "sheet-test.png"
+    own = tmp_path / "set"
+    shutil.copytree(smoke, own)                       # the shared set stays untouched
+    p = sheets.write_sheet(own)                       # the test split, into the data set folder
+    assert p == own / "sheet-test.png"
     lay = sheets.sheet_layout(2, 2, (64, 64), 192)
     assert read_image(p).shape == (lay.height, lay.width, 3)
-    p.unlink()
     out = tmp_path / "cli.png"
     assert main(["sheet", str(smoke), "--split", "train", "--n", "2", "--thumb", "96", "--out", str(out)]) == 0
     assert capsys.readouterr().out.strip() == str(out)

@@ -17,13 +17,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def smoke(tmp_path_factory) -> Path:
-    from dofsynth.config import load_recipe
-    from dofsynth.generate import generate
-
-    out = tmp_path_factory.mktemp("stats") / "set"
-    generate(load_recipe(ROOT / "recipes" / "smoke.toml"), out, progress=False)
-    return out
+def smoke(smoke_set) -> Path:
+    return smoke_set
 
 
 @pytest.fixture(scope="module")

@@ -159,16 +159,13 @@ def test_config_round_trip_and_refusals(tmp_path):
         load(ROOT / "recipes" / name)
 
 
-def test_two_steps_on_the_generators_smoke_data(tmp_path):
+def test_two_steps_on_the_generators_smoke_data(tmp_path, smoke_set):
     from dofsynth.augment import layers_from_record
-    from dofsynth.config import load_recipe
-    from dofsynth.generate import generate
     from dofsynth.io import decode_exr, decode_image
     from dofsynth.train.data import find_shards, peek_records
     import webdataset as wds
 
-    data = tmp_path / "smoke"
-    generate(load_recipe(ROOT / "recipes" / "smoke.toml"), data, progress=False)
+    data = smoke_set
     # the corruption's model of the layers agrees with the generator's depth maps
     raw = next(iter(wds.tariterators.tarfile_samples([{"url": find_shards(data, "train")[0]}])))
     record, depth, cover = json.loads(raw["json"]), decode_exr(raw["depth.exr"]), decode_image(raw["cover.png"])

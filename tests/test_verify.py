@@ -20,15 +20,6 @@ from dofsynth.verify import check_record_schema, verify_dataset
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def generate_smoke(out: Path) -> Path:
-    """The real smoke data set (recipes/smoke.toml: 64 px, 6 train + 2 test, 2 per shard)."""
-    from dofsynth.config import load_recipe
-    from dofsynth.generate import generate
-
-    generate(load_recipe(ROOT / "recipes" / "smoke.toml"), out, progress=False)
-    return out
-
-
 # ---------------------------------------------------------------- damage helpers
 def rewrite_record(out: Path, split: str, key: str, edit) -> str:
     """Rewrite the shard holding `key` with `edit(record_dict)` applied to its JSON, keeping
@@ -78,8 +69,8 @@ def _fix_manifest(out, manifest, name, data):
 
 # ---------------------------------------------------------------- fixtures
 @pytest.fixture(scope="module")
-def fresh(tmp_path_factory) -> Path:
-    return generate_smoke(tmp_path_factory.mktemp("verify") / "set")
+def fresh(smoke_set) -> Path:
+    return smoke_set
 
 
 @pytest.fixture
