@@ -1,4 +1,6 @@
-"""Benchmark of render_planes on one core: a three-plane 1024x1024 scene, max CoC 32 px.
+"""Benchmark of render_planes on one core: a three-plane 1024x1024 scene, max CoC 32 px; and,
+with --generation, where one generated sample's time goes (scene, compose, boost, render,
+encoding, tar write) at the sizes given.
 
 Scene: an opaque background with a sloped disparity ramp (0.05 at the top to 0.35 at the
 bottom), two soft-edged cutouts at disparity 0.5 and 0.85 (discs of radius 220 and 180 px with
@@ -8,6 +10,11 @@ The naive baseline is a per-pixel gather in plain numpy (each output pixel sums 
 the kernel of its own CoC), timed on six 32x32 crops spread over the scene and scaled by pixel count.
 
 Run: `.venv/bin/python benchmarks/render.py [--size N] [--repeat K]`.
+     `.venv/bin/python benchmarks/render.py --generation [--sizes 1024 4096] [--samples 8]`:
+     recipes/deeplens-18k.toml with the built-in assets at each size (max CoC scaled), samples
+     0..N-1 after one warm-up sample, each stage timed by wrapping the function that does it;
+     medians over the samples, wall and CPU seconds. With `PYTHONPATH=OLD_TREE` it times an
+     older checkout the same way (before/after comparisons on the same machine state).
 """
 from __future__ import annotations
 
@@ -75,12 +82,92 @@ def timed(fn, repeat):
     return statistics.median(times), times
 
 
+STAGES = (("scene", "dofsynth.scene", "sample_scene"), ("compose", "dofsynth.compose", "scene_layers"),
+          ("boost", "dofsynth.record", "highlight_boost"), ("render", "dofsynth.render", "render_planes"),
+          ("encode aif+dof", "dofsynth.record", "encode_srgb_png"), ("encode cover", "dofsynth.record", "encode_cover"),
+          ("encode cover", "dofsynth.record", "encode_alphas"), ("encode depth", "dofsynth.record", "encode_exr"))
+
+
+def generation_stages(sizes, samples: int) -> None:
+    """Per-stage wall/CPU time of dofsynth.generate.render_one plus the tar write."""
+    import importlib
+    import re
+    import tempfile
+    from pathlib import Path
+
+    from dofsynth.config import recipe_from_text
+    from dofsynth.generate import _library_for, render_one
+    from dofsynth.shards import write_shard
+
+    acc: dict[str, list[float]] = {}
+
+    def wrap(stage, module, name):
+        mod = importlib.import_module(module)
+        fn = getattr(mod, name, None)
+        if fn is None or getattr(fn, "_timed", False):
+            return
+
+        def timed_fn(*a, **k):
+            t0, c0 = time.perf_counter(), time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                w, c = acc.get(stage, (0.0, 0.0))
+                acc[stage] = [w + time.perf_counter() - t0, c + time.process_time() - c0]
+
+        timed_fn._timed = True
+        setattr(mod, name, timed_fn)
+
+    for stage, module, name in STAGES:
+        wrap(stage, module, name)
+    root = Path(__file__).resolve().parents[1]
+    base = (root / "recipes" / "deeplens-18k.toml").read_text(encoding="utf-8")
+    import dofsynth
+
+    print(f"dofsynth from {Path(dofsynth.__file__).parent}; load average {os.getloadavg()[0]:.2f}")
+    for size in sizes:
+        t = re.sub(r"(?m)^size = \d+", f"size = {size}", base)
+        t = re.sub(r"(?m)^samples = \{[^}]*\}", f"samples = {{ train = {samples + 1}, test = 0 }}", t)
+        t = re.sub(r'(?m)^(backgrounds|foregrounds) = "[^"]*"', r'\1 = "builtin"', t)
+        t = re.sub(r"(?m)^manifest = .*$", "", t)
+        t = re.sub(r"(?m)^max_coc = \[([\d.]+), ([\d.]+)\]",
+                   lambda m: f"max_coc = [{float(m.group(1)) * size / 1024}, {float(m.group(2)) * size / 1024}]", t)
+        recipe = recipe_from_text(t, f"bench-{size}.toml", root / "recipes")
+        library = _library_for(recipe)
+        render_one(recipe, library, "train", samples)  # warm-up (kernels, FFT plans, memory)
+        rows = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for i in range(samples):
+                acc.clear()
+                t0, c0 = time.perf_counter(), time.process_time()
+                key, members = render_one(recipe, library, "train", i)
+                t1, c1 = time.perf_counter(), time.process_time()
+                write_shard(Path(tmp) / f"{i}.tar", [(key, members)])
+                acc["tar write"] = [time.perf_counter() - t1, time.process_time() - c1]
+                acc["total"] = [time.perf_counter() - t0, time.process_time() - c0]
+                acc["MB / sample"] = [sum(map(len, members.values())) / 1e6] * 2
+                rows.append(dict(acc))
+        print(f"{size} px, {samples} samples (medians):   wall s    cpu s")
+        names = list(dict.fromkeys([s for s, _, _ in STAGES] + ["tar write", "total", "MB / sample"]))
+        for stage in names:
+            w = statistics.median(r.get(stage, (0.0, 0.0))[0] for r in rows)
+            c = statistics.median(r.get(stage, (0.0, 0.0))[1] for r in rows)
+            print(f"  {stage:24s} {w:9.4f} {c:8.4f}", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=1024)
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--generation", action="store_true", help="per-stage time of generated samples instead")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1024], help="with --generation")
+    ap.add_argument("--samples", type=int, default=8, help="with --generation")
     args = ap.parse_args()
     cv2.setNumThreads(1)
+    if args.generation:
+        with scipy.fft.set_workers(1):
+            generation_stages(args.sizes, args.samples)
+        return
     n = args.size
     planes = scene(n, np.random.default_rng(np.random.SeedSequence(2024)))
     print(f"render_planes, {n}x{n}, 3 planes (sloped background ramp + 2 soft cutouts), max_coc {MAX_COC}")
