@@ -15,6 +15,7 @@ Run: `.venv/bin/python benchmarks/render.py [--size N] [--repeat K]`.
      0..N-1 after one warm-up sample, each stage timed by wrapping the function that does it;
      medians over the samples, wall and CPU seconds. With `PYTHONPATH=OLD_TREE` it times an
      older checkout the same way (before/after comparisons on the same machine state).
+     `.venv/bin/python benchmarks/render.py --levels`: the level-spacing error table.
 """
 from __future__ import annotations
 
@@ -155,6 +156,29 @@ def generation_stages(sizes, samples: int) -> None:
             print(f"  {stage:24s} {w:9.4f} {c:8.4f}", flush=True)
 
 
+def level_errors() -> None:
+    """The level-spacing error table of docs/rendering.md: kodim01 (../shared/assets) and white
+    noise, vertical ramp CoC -28.8 .. -12.8 px, against level_step=0.05 with fixed steps."""
+    from pathlib import Path
+
+    from dofsynth.io import load_linear_rgba
+    from dofsynth.render import level_grid
+
+    photo = Path(__file__).resolve().parents[2] / "shared" / "assets" / "bg" / "kodak_kodim01.png"
+    img, _ = load_linear_rgba(photo)
+    h, w = img.shape[:2]
+    ramp = np.broadcast_to(np.linspace(0.1, 0.6, h, dtype=np.float32)[:, None], (h, w))
+    noise = np.random.default_rng(0).random((h, w, 3), dtype=np.float32)
+    print("| image | level_step | level_ratio | levels | max abs error | mean abs error |")
+    for name, im in (("kodim01", img), ("white noise", noise)):
+        planes = [Plane(im, np.ones((h, w), np.float32), ramp)]
+        ref = render_planes(planes, 1.0, 32.0, level_step=0.05, level_ratio=0.0)
+        for step, ratio in ((1.0, 0.0), (0.5, 0.0), (0.25, 0.0), (0.5, 1 / 32), (0.5, 1 / 16)):
+            e = np.abs(render_planes(planes, 1.0, 32.0, level_step=step, level_ratio=ratio) - ref)
+            print(f"| {name} | {step} | {ratio:.4g} | {level_grid(-28.8, -12.8, step, ratio).size} "
+                  f"| {e.max():.1e} | {e.mean():.1e} |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=1024)
@@ -162,8 +186,12 @@ def main() -> None:
     ap.add_argument("--generation", action="store_true", help="per-stage time of generated samples instead")
     ap.add_argument("--sizes", type=int, nargs="+", default=[1024], help="with --generation")
     ap.add_argument("--samples", type=int, default=8, help="with --generation")
+    ap.add_argument("--levels", action="store_true", help="the level-spacing error table instead")
     args = ap.parse_args()
     cv2.setNumThreads(1)
+    if args.levels:
+        level_errors()
+        return
     if args.generation:
         with scipy.fft.set_workers(1):
             generation_stages(args.sizes, args.samples)
