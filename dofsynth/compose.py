@@ -12,7 +12,7 @@ depth sensor or a matting-free annotation would report.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -27,8 +27,28 @@ COVER_THRESHOLD = 0.5
 @dataclass
 class Layers:
     planes: list[Plane]        # back to front: background (opaque, disparity map), middle, front
-    aif: np.ndarray            # (H, W, 3) float32 linear: the planes composited "over", no blur
     disparity: np.ndarray      # (H, W) float32: front-most plane with alpha >= 0.5
+    boxes: list = field(default_factory=list)  # per cutout: (row slice, column slice) of alpha > 0, or None
+
+    @property
+    def aif(self) -> np.ndarray:
+        """(H, W, 3) float32 linear: the planes composited "over", no blur (made on access from
+        the planes' current colour)."""
+        return self.aif_rows(0, self.planes[0].shape[0])
+
+    def aif_rows(self, r0: int, r1: int) -> np.ndarray:
+        """Rows r0:r1 of `aif` (same values): lets an encoder work in blocks without the frame."""
+        out = np.array(self.planes[0].rgb[r0:r1], dtype=np.float32, copy=True)
+        for p, box in zip(self.planes[1:], self.boxes or [_alpha_box(p.alpha) for p in self.planes[1:]]):
+            if box is None or box[0].stop <= r0 or box[0].start >= r1:
+                continue
+            rows = slice(max(box[0].start, r0), min(box[0].stop, r1))
+            a = p.alpha[rows, box[1]]
+            keep = 1.0 - a
+            for ch in range(3):  # one channel at a time: small temporaries
+                region = out[rows.start - r0:rows.stop - r0, box[1], ch]
+                region[...] = p.rgb[rows, box[1], ch] * a + region * keep
+        return out
 
     @property
     def cover(self) -> np.ndarray:
@@ -127,8 +147,9 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> Layers:
 
     The background plane's alpha is a read-only broadcast 1 and its disparity a float (flat) or
     a read-only broadcast of one row or column (ramp): no frame-sized arrays for them. The
-    all-in-focus image and the disparity are updated only inside each cutout's alpha box
-    (outside it the cutout has alpha 0 and changes nothing)."""
+    disparity is updated only inside each cutout's alpha box (outside it the cutout has alpha 0
+    and changes nothing); the all-in-focus image is composited the same way on access
+    (`Layers.aif`, or `Layers.aif_rows` block by block)."""
     h, w = scene.size
     bgp = scene.background
     bg_rgb = background_image(library.load_background(_asset(library, scene, "background")), bgp.crop, bgp.flip, h, w)
@@ -147,16 +168,11 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> Layers:
         prgb, pa = place_foreground(rgb, alpha, asset.extent, params, h, w)
         planes.append(Plane(rgb=prgb, alpha=pa, disparity=float(params.disparity)))
 
-    aif = bg_rgb.copy()
+    boxes = []
     for p in planes[1:]:
         box = _alpha_box(p.alpha)
-        if box is None:
-            continue
-        a = p.alpha[box]
-        keep = 1.0 - a
-        for ch in range(3):  # one channel at a time: small temporaries
-            region = aif[box + (ch,)]
-            region[...] = p.rgb[box + (ch,)] * a + region * keep
-        d = disparity[box]
-        d[p.alpha[box] >= COVER_THRESHOLD] = p.disparity
-    return Layers(planes=planes, aif=aif, disparity=disparity)
+        boxes.append(box)
+        if box is not None:
+            d = disparity[box]
+            d[p.alpha[box] >= COVER_THRESHOLD] = p.disparity
+    return Layers(planes=planes, disparity=disparity, boxes=boxes)

@@ -8,7 +8,8 @@ encoded canonically (sorted keys, Python's shortest round-trip float repr), so a
 same bytes wherever and whenever it is rendered.
 
 What the pixels are:
-- `aif.png`: the all-in-focus composite `layers.aif` (linear), sRGB-encoded, 8 bit, un-boosted.
+- `aif.png`: the all-in-focus composite `layers.aif` (linear), sRGB-encoded, 8 bit, un-boosted
+  (encoded in row blocks, `layers.aif_rows`, before the planes are boosted).
 - `dof.N.png`: `render_planes(planes, focus_N, max_coc_N, aperture)` with each plane's colour
   highlight-boosted first when the record's `options.highlight` is set; clipped to [0, 1],
   sRGB-encoded, 8 bit. (With `options.linear_light = false`, the naive baseline, the planes are
@@ -124,7 +125,24 @@ def encode_png8(img: np.ndarray) -> bytes:
 
 def encode_srgb_png(linear: np.ndarray) -> bytes:
     """Linear RGB -> clip [0, 1] -> 8-bit sRGB (`linear_to_srgb8`, exact) -> PNG bytes."""
-    return encode_png8(linear_to_srgb8(linear))
+    linear = np.asarray(linear)
+    if linear.ndim != 3 or linear.shape[2] != 3:
+        raise ValueError(f"PNG member must be (H, W, 3), got shape {linear.shape}")
+    return encode_srgb_png_rows(lambda r0, r1: linear[r0:r1], *linear.shape[:2])
+
+
+def encode_srgb_png_rows(rows, h: int, w: int) -> bytes:
+    """Like `encode_srgb_png` for an (h, w, 3) linear image given block by block by
+    `rows(r0, r1)`: the sRGB codes go straight into the BGR buffer the encoder takes, so no
+    frame-sized float temporaries (the same bytes)."""
+    bgr = np.empty((h, w, 3), np.uint8)
+    for r0 in range(0, h, _ROWS):
+        r1 = min(r0 + _ROWS, h)
+        bgr[r0:r1] = linear_to_srgb8(rows(r0, r1))[:, :, ::-1]
+    return _encode_bgr(bgr, PNG_PARAMS)
+
+
+_ROWS = 64  # rows per block of the sRGB encode
 
 
 def encode_cover(cover: np.ndarray) -> bytes:
@@ -168,7 +186,7 @@ def render_sample(scene, library, recipe) -> dict[str, bytes]:
     linear_light = bool(options.get("linear_light", recipe.render.linear_light))
     # Encode the un-blurred members first and drop their arrays (peak memory at large sizes).
     members: dict[str, bytes] = {
-        "aif.png": encode_srgb_png(layers.aif),
+        "aif.png": encode_srgb_png_rows(layers.aif_rows, *layers.disparity.shape),
         "depth.exr": encode_exr(np.asarray(layers.disparity, dtype=np.float32)),
         "cover.png": encode_alphas(planes[2].alpha, planes[1].alpha),
     }

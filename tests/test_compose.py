@@ -153,3 +153,11 @@ def test_background_plane_holds_no_frame_sized_alpha_or_disparity(layers_of):
             assert 0 in bg.disparity.strides and np.array_equal(bg.disparity, want)
         for p in L.planes:  # the renderer may boost colour in place: planes own their colour
             assert p.rgb.flags.writeable
+
+
+def test_aif_rows_are_the_aif(layers_of):
+    for s, L in layers_of[:3]:
+        full = L.aif
+        H = full.shape[0]
+        blocks = np.concatenate([L.aif_rows(r, min(r + 7, H)) for r in range(0, H, 7)])
+        np.testing.assert_array_equal(blocks, full)
