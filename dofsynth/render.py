@@ -6,26 +6,27 @@ radius `c = max_coc * (disparity - focus)` in pixels (see dofsynth.aperture), th
 planes are composited with "over". The backmost plane extends past the frame by edge
 replication; the others are zero outside it.
 
-Constant-disparity planes are convolved exactly (FFT, kernel transform cached; cv2 for tiny
-kernels), cropped to the plane's alpha bounding box plus the kernel radius. Planes whose
-disparity varies use a normalized scatter: the signed CoC is split into evenly spaced levels
-`c_k` at most `level_step` pixels apart; each pixel is shared between its two neighbouring levels
-with linear weights `w_k`, and `out = sum_k K_k * (w_k P) / sum_k K_k * w_k` (the denominator is the
-same scatter applied to ones). A constant map is one level, i.e. the exact constant result. The
+Constant-disparity planes are convolved exactly (float32 FFT, overlap-add tiles for large
+ones; cv2 for tiny kernels), cropped to the plane's alpha bounding box plus the kernel radius,
+one channel at a time. Planes whose disparity varies use a normalized scatter: the signed CoC
+is split into levels `c_k` anchored at the smallest CoC and at most
+`max(level_step, level_ratio * |c_k|)` pixels apart; each pixel is shared between its two
+neighbouring levels with linear weights `w_k`, and `out = sum_k K_k * (w_k P) / sum_k K_k * w_k`
+(the denominator is the same scatter applied to ones; a 1-D convolution when the map is a
+broadcast row or column). A constant map is one level, i.e. the exact constant result. The
 only approximation is the linear interpolation of kernels between levels (docs/rendering.md).
 No torch here: this module is on the data-generation path.
 """
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import cv2
 import numpy as np
 import scipy.fft as sfft
 
 from dofsynth.aperture import Aperture, Disk, Polygon, kernel, support_radius
-from dofsynth.planes import Plane, validate_planes
+from dofsynth.planes import validate_planes
 
 # Kernels with support radius up to this many pixels (11x11) go through cv2.filter2D (direct,
 # 2-6x faster there, measured), larger ones via FFT (cv2 switches to its own slower DFT beyond).
