@@ -173,3 +173,21 @@ def smoke_set(tmp_path_factory, smoke_recipe) -> Path:
     out = tmp_path_factory.mktemp("smoke") / "set"
     generate(smoke_recipe, out, progress=False)
     return out
+
+
+def _brute_coverage(aperture, radius, sub=64):
+    """Independent reference kernel: point-in-shape tests on sub x sub points per pixel
+    (area of the aperture of `radius` px inside each pixel, unnormalized)."""
+    from dofsynth.aperture import support_radius
+
+    s = support_radius(radius)
+    n = 2 * s + 1
+    t = (np.arange(n * sub) + 0.5) / sub - s - 0.5
+    yy, xx = np.meshgrid(t, t, indexing="ij")
+    inside = aperture.contains(xx / radius, yy / radius).astype(np.float64)
+    return inside.reshape(n, sub, n, sub).sum(axis=(1, 3)) / sub**2
+
+
+@pytest.fixture(scope="session")
+def brute_coverage():
+    return _brute_coverage

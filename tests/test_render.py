@@ -8,16 +8,6 @@ from dofsynth.planes import Plane
 from dofsynth.render import render_planes
 
 
-def brute_coverage(aperture, radius, sub=64):
-    """Independent reference kernel: point-in-shape tests on sub x sub points per pixel."""
-    s = support_radius(radius)
-    n = 2 * s + 1
-    t = (np.arange(n * sub) + 0.5) / sub - s - 0.5
-    yy, xx = np.meshgrid(t, t, indexing="ij")
-    inside = aperture.contains(xx / radius, yy / radius).astype(np.float64)
-    return inside.reshape(n, sub, n, sub).sum(axis=(1, 3)) / sub**2
-
-
 def rng(seed):
     return np.random.default_rng(np.random.SeedSequence(seed))
 
@@ -55,7 +45,7 @@ CASES = [(Disk(), 3.3), (Disk(), -2.0), (Disk(), 7.5), (Polygon(5, 10.0), -4.1),
 
 
 @pytest.mark.parametrize("ap,c", CASES)
-def test_constant_plane_is_analytic_convolution(ap, c):
+def test_constant_plane_is_analytic_convolution(ap, c, brute_coverage):
     g = rng(1)
     img = g.random((40, 44, 3), dtype=np.float32)
     cov = brute_coverage(ap, abs(c))  # 64x64 point samples per pixel: independent of aperture.py
