@@ -3,7 +3,7 @@ energy, the exact mode, and input validation."""
 import numpy as np
 import pytest
 
-from dofsynth.aperture import Disk, Polygon, support_radius
+from dofsynth.aperture import Disk, Polygon
 from dofsynth.planes import Plane
 from dofsynth.render import render_planes
 
