@@ -96,14 +96,20 @@ def encode_png(img: np.ndarray, compression: int = 3) -> bytes:
     return buf.tobytes()
 
 
-def encode_exr(depth: np.ndarray, channel: str = "Z") -> bytes:
-    """Encode a float32 (H, W) map as a one-channel, ZIP-compressed (lossless) EXR."""
-    arr = np.ascontiguousarray(np.asarray(depth, dtype=np.float32))
-    if arr.ndim != 2:
-        raise ValueError(f"EXR depth must be (H, W), got shape {arr.shape}")
+def encode_exr(image: np.ndarray, channel: str = "Z") -> bytes:
+    """Encode float32 pixels as a ZIP-compressed (lossless) EXR: an (H, W) map as one channel
+    named `channel` (depth: "Z"), an (H, W, 3|4) image as channels R, G, B(, A)."""
+    arr = np.asarray(image, dtype=np.float32)
+    if arr.ndim == 2:
+        chans = {channel: np.ascontiguousarray(arr)}
+    elif arr.ndim == 3 and arr.shape[2] in (3, 4):
+        # OpenEXR writes non-contiguous arrays wrongly: copy each channel out.
+        chans = {k: np.ascontiguousarray(arr[:, :, i]) for i, k in enumerate("RGBA"[: arr.shape[2]])}
+    else:
+        raise ValueError(f"EXR pixels must be (H, W) or (H, W, 3|4), got shape {arr.shape}")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     out = io.BytesIO()
-    OpenEXR.File(header, {channel: arr}).write(out)
+    OpenEXR.File(header, chans).write(out)
     return out.getvalue()
 
 
@@ -161,5 +167,6 @@ def write_png(path: str | os.PathLike, img: np.ndarray) -> None:
     atomic_write_bytes(path, encode_png(img))
 
 
-def write_exr(path: str | os.PathLike, depth: np.ndarray) -> None:
-    atomic_write_bytes(path, encode_exr(depth))
+def write_exr(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write a depth map (H, W) or a linear image (H, W, 3|4) as EXR, atomically."""
+    atomic_write_bytes(path, encode_exr(image))

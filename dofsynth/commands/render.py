@@ -3,7 +3,6 @@ for one photo and its depth map (the photo is one opaque plane of varying dispar
 from __future__ import annotations
 
 import argparse
-import io
 import os
 from pathlib import Path
 
@@ -101,15 +100,10 @@ def _read_inputs(args):
 
 def _write(path: Path, rgb: np.ndarray) -> None:
     from dofsynth.color import linear_to_srgb
-    from dofsynth.io import atomic_write_bytes, write_png
+    from dofsynth.io import write_exr, write_png
 
     if path.suffix.lower() == ".exr":
-        import OpenEXR
-
-        chans = {k: np.ascontiguousarray(rgb[:, :, i], dtype=np.float32) for i, k in enumerate("RGB")}
-        buf = io.BytesIO()
-        OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, chans).write(buf)
-        atomic_write_bytes(path, buf.getvalue())
+        write_exr(path, rgb)
     else:
         write_png(path, linear_to_srgb(rgb))
 
@@ -146,5 +140,7 @@ def run(args) -> int:
         with scipy.fft.set_workers(os.cpu_count() or 1):
             result = render_planes([plane], focus, args.max_coc, aperture, method=args.method)
     _write(out, np.asarray(result, dtype=np.float32))
-    print(f"wrote {out} (focus {focus:.4f}, max CoC {args.max_coc} px, aperture {args.aperture})")
+    how = (f"network {args.model}, aperture scale {args.aperture_scale}" if args.model is not None
+           else f"max CoC {args.max_coc} px, aperture {args.aperture}")
+    print(f"wrote {out} (focus {focus:.4f}, {how})")
     return 0
