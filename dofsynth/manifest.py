@@ -107,16 +107,20 @@ def write_manifest(out: str | os.PathLike, manifest: dict) -> Path:
     return path
 
 
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ManifestError(f"{path}: not valid JSON ({exc})") from exc
+
+
 def load_manifest(out_or_path: str | os.PathLike) -> dict:
     """Read a manifest, given the data set folder or the manifest file itself."""
     p = Path(out_or_path)
     path = p / MANIFEST_NAME if p.is_dir() else p
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no manifest (an unfinished or foreign data set folder?)")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ManifestError(f"{path}: not valid JSON ({exc})") from exc
+    data = _read_json(path)
     if not isinstance(data, dict) or "splits" not in data or "recipe" not in data:
         raise ManifestError(f"{path}: not a dofsynth manifest (no 'splits' or 'recipe')")
     if data.get("schema_version") != MANIFEST_SCHEMA_VERSION:
@@ -262,10 +266,7 @@ def load_part(path: str | os.PathLike) -> dict:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such partial manifest")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ManifestError(f"{path}: not valid JSON ({exc})") from exc
+    data = _read_json(path)
     need = ("schema_version", "dofsynth_version", "recipe", "recipe_samples", "plan", "range", "shards", "extra")
     if not isinstance(data, dict) or any(k not in data for k in need):
         raise ManifestError(f"{path}: not a dofsynth partial manifest (written by generate --shards A:B)")

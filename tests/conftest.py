@@ -191,3 +191,14 @@ def _brute_coverage(aperture, radius, sub=64):
 @pytest.fixture(scope="session")
 def brute_coverage():
     return _brute_coverage
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Tiny tensors: one intra-op thread is faster and does not fight other test workers."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -15,13 +15,7 @@ from dofsynth.train.models import (ChannelFeatures, DeepLensNet, GuidedUpsampler
 TINY = ModelConfig(feat_channels=4, kp_width=8, kp_depth=2, up_width=8)
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Tiny tensors: one intra-op thread is faster and does not fight other test workers."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_size_chain_halves_rounding_up():
