@@ -86,7 +86,9 @@ def timed(fn, repeat):
 STAGES = (("scene", "dofsynth.scene", "sample_scene"), ("compose", "dofsynth.compose", "scene_layers"),
           ("boost", "dofsynth.record", "highlight_boost"), ("render", "dofsynth.render", "render_planes"),
           ("encode aif+dof", "dofsynth.record", "encode_srgb_png_rows"),  # encode_srgb_png calls it
-          ("encode aif+dof", "dofsynth.record", "encode_srgb_png"), ("encode cover", "dofsynth.record", "encode_cover"),
+          ("encode aif+dof", "dofsynth.record", "encode_srgb_png"),
+          ("encode aif+dof", "dofsynth.record", "encode_srgb_png_planar"),  # dof.N.png (planar render)
+          ("encode cover", "dofsynth.record", "encode_cover"),
           ("encode cover", "dofsynth.record", "encode_alphas"), ("encode depth", "dofsynth.record", "encode_exr"))
 
 

@@ -41,9 +41,15 @@ class Plane:
         return np.concatenate([self.rgb * a, a], axis=2).astype(np.float32)
 
 
-def _check_finite(name: str, arr: np.ndarray) -> None:
-    if not np.all(np.isfinite(arr)):
+def _range(name: str, arr: np.ndarray) -> tuple[float, float]:
+    """(min, max) of an array, refusing NaN and inf: one pass each, no frame-sized temporaries
+    (NaN propagates through min, inf shows in min or max). A broadcast axis is read once."""
+    if arr.ndim and arr.size:
+        arr = arr[tuple(slice(0, 1) if st == 0 else slice(None) for st in arr.strides)]
+    lo, hi = (float(np.min(arr)), float(np.max(arr))) if arr.size else (0.0, 0.0)
+    if not (np.isfinite(lo) and np.isfinite(hi)):
         raise ValueError(f"{name} contains NaN or inf")
+    return lo, hi
 
 
 def validate_planes(planes, focus: float, max_coc: float) -> None:
@@ -68,11 +74,11 @@ def validate_planes(planes, focus: float, max_coc: float) -> None:
         d = np.asarray(p.disparity)
         if d.ndim != 0 and d.shape != shape:
             raise ValueError(f"planes[{i}].disparity must be a float or {shape}, got shape {d.shape}")
-        for name, arr in (("rgb", rgb), ("alpha", alpha), ("disparity", d)):
-            _check_finite(f"planes[{i}].{name}", arr)
-        if alpha.min() < 0 or alpha.max() > 1:
-            raise ValueError(f"planes[{i}].alpha must lie in [0, 1], got [{alpha.min()}, {alpha.max()}]")
-        if d.min() < 0 or d.max() > 1:
-            raise ValueError(f"planes[{i}].disparity must lie in [0, 1], got [{d.min()}, {d.max()}]")
-        if rgb.min() < 0:
-            raise ValueError(f"planes[{i}].rgb must be linear light >= 0, got min {rgb.min()}")
+        (rgb_lo, _), (a_lo, a_hi), (d_lo, d_hi) = (_range(f"planes[{i}].{name}", arr) for name, arr in
+                                                   (("rgb", rgb), ("alpha", alpha), ("disparity", d)))
+        if a_lo < 0 or a_hi > 1:
+            raise ValueError(f"planes[{i}].alpha must lie in [0, 1], got [{a_lo}, {a_hi}]")
+        if d_lo < 0 or d_hi > 1:
+            raise ValueError(f"planes[{i}].disparity must lie in [0, 1], got [{d_lo}, {d_hi}]")
+        if rgb_lo < 0:
+            raise ValueError(f"planes[{i}].rgb must be linear light >= 0, got min {rgb_lo}")

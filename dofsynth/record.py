@@ -145,6 +145,24 @@ def encode_srgb_png_rows(rows, h: int, w: int) -> bytes:
 _ROWS = 64  # rows per block of the sRGB encode
 
 
+def encode_srgb_png_planar(linear: np.ndarray) -> bytes:
+    """`encode_srgb_png` of a planar (3, H, W) linear image (`render_planes(..., planar=True)`):
+    each channel's row block is encoded where it lies (contiguous) and written into its BGR
+    slot (the same bytes, no interleaved float copy)."""
+    linear = np.asarray(linear)
+    if linear.ndim != 3 or linear.shape[0] != 3:
+        raise ValueError(f"planar PNG member must be (3, H, W), got shape {linear.shape}")
+    _, h, w = linear.shape
+    bgr = np.empty((h, w, 3), np.uint8)
+    codes = np.empty((min(_ROWS, h), w), np.uint8)
+    for r0 in range(0, h, _ROWS):
+        r1 = min(r0 + _ROWS, h)
+        for ch in range(3):
+            linear_to_srgb8(linear[ch, r0:r1], out=codes[: r1 - r0])
+            bgr[r0:r1, :, 2 - ch] = codes[: r1 - r0]
+    return _encode_bgr(bgr, PNG_PARAMS)
+
+
 def encode_cover(cover: np.ndarray) -> bytes:
     """(H, W, 2) front/middle alpha in [0, 1] -> 8-bit RGB PNG (R front, G middle, B 0)."""
     cover = np.asarray(cover, dtype=np.float32)
@@ -211,9 +229,12 @@ def render_sample(scene, library, recipe) -> dict[str, bytes]:
         blur_planes = [Plane(rgb=linear_to_srgb(p.rgb), alpha=p.alpha, disparity=p.disparity) for p in blur_planes]
     del planes
     for n, t in enumerate(record["targets"]):
-        img = render_planes(blur_planes, float(t["focus"]), float(t["max_coc"]), aperture)
-        members[f"dof.{n}.png"] = (encode_srgb_png(img) if linear_light
-                                   else encode_png8(np.clip(img, 0.0, 1.0)))
+        if linear_light:  # planar (3, H, W): encoded in row blocks, no interleaved frame copy
+            img = render_planes(blur_planes, float(t["focus"]), float(t["max_coc"]), aperture, planar=True)
+            members[f"dof.{n}.png"] = encode_srgb_png_planar(img)
+        else:
+            img = render_planes(blur_planes, float(t["focus"]), float(t["max_coc"]), aperture)
+            members[f"dof.{n}.png"] = encode_png8(np.clip(img, 0.0, 1.0))
         del img
     members["json"] = encode_record(record)
     return members

@@ -365,6 +365,7 @@ def render_planes(
     level_step: float = 0.5,
     level_ratio: float = LEVEL_RATIO,
     samples: int | None = None,
+    planar: bool = False,
 ) -> np.ndarray:
     """Render a layered scene with shallow depth of field; linear RGB (H, W, 3) float32.
 
@@ -374,6 +375,8 @@ def render_planes(
     occlusion per sample, slow; `samples` = aperture points, None = enough for <= 0.5 px steps).
     level_step: largest CoC gap in pixels between the levels of a varying-disparity plane.
     The result is the premultiplied composite over black (opaque if the backmost plane is).
+    planar=True returns the same values as (3, H, W) (the layered renderer's own layout: no
+    interleaving copy, which at 4096 px is a fresh 192 MiB frame and ~0.17 s).
     """
     planes = list(planes)
     validate_planes(planes, focus, max_coc)
@@ -392,7 +395,8 @@ def render_planes(
     if method == "exact":
         from dofsynth.exact import render_exact
 
-        return render_exact(planes, focus, max_coc, aperture, samples=samples)
+        img = render_exact(planes, focus, max_coc, aperture, samples=samples)
+        return img.transpose(2, 0, 1) if planar else img
     H, W = planes[0].shape
     acc = np.zeros((3, H, W), dtype=np.float32)  # planar: contiguous per-channel updates
     for i, plane in enumerate(planes):
@@ -408,4 +412,6 @@ def render_planes(
         else:
             _composite_varying(acc, rgb, alpha, plane.disparity_map(), box, max_coc, focus, aperture,
                                backmost, level_step, level_ratio)
+    if planar:
+        return acc
     return cv2.merge([acc[0], acc[1], acc[2]])  # (H, W, 3) float32

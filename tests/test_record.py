@@ -14,7 +14,8 @@ from dofsynth.config import load_recipe
 from dofsynth.io import encode_exr, encode_png
 from dofsynth.planes import Plane
 from dofsynth.record import (RENDERER_ID, SampleDecodeError, boosted_planes, decode_sample, encode_cover,
-                             encode_png8, encode_record, render_sample)
+                             encode_png8, encode_record, encode_srgb_png, encode_srgb_png_planar,
+                             render_sample)
 from dofsynth.render import render_planes
 from dofsynth.aperture import from_dict as aperture_from_dict
 from dofsynth.scene import Scene, sample_scene
@@ -154,3 +155,13 @@ def test_cover_from_alphas_is_the_cover_png(setup):
     assert not img[..., 2].any()
     with pytest.raises(ValueError, match="cover"):
         encode_alphas(front, middle[:, :3])
+
+
+def test_planar_srgb_png_is_the_same_bytes():
+    g = np.random.default_rng(np.random.SeedSequence(31))
+    for h, w in ((150, 37), (64, 5), (1, 3)):
+        x = g.random((3, h, w), dtype=np.float32) * 1.4 - 0.2  # out of [0, 1] too
+        x[1, 0, 0], x[2, -1, -1] = np.nan, np.inf
+        assert encode_srgb_png_planar(x) == encode_srgb_png(np.ascontiguousarray(x.transpose(1, 2, 0)))
+    with pytest.raises(ValueError, match="3, H, W"):
+        encode_srgb_png_planar(np.zeros((4, 4, 3), np.float32))

@@ -336,3 +336,34 @@ def test_tiled_fft_convolution_equals_the_whole_frame(monkeypatch):
     assert conv.ty < h and conv.tx < w  # really tiled
     for p, ref in zip(scenes, whole):
         np.testing.assert_allclose(render_planes(p, 0.95, 24.0, Polygon(6)), ref, atol=2e-6)
+
+
+def test_non_finite_values_are_refused_wherever_they_are():
+    """Validation reads each array's min and max once (no isfinite temporaries): a single NaN,
+    inf or -inf anywhere, also in a disparity map or an alpha, is still refused."""
+    g = rng(21)
+    img = g.random((9, 11, 3), dtype=np.float32)
+    ones = np.ones((9, 11), np.float32)
+    ramp = np.broadcast_to(np.linspace(0.1, 0.5, 9, dtype=np.float32)[:, None], (9, 11))
+    render_planes([Plane(img, np.broadcast_to(np.float32(1.0), (9, 11)), ramp)], 0.3, 4.0)  # broadcasts are fine
+    for bad in (np.nan, np.inf, -np.inf):
+        for field in ("rgb", "alpha", "disparity"):
+            arrays = {"rgb": img.copy(), "alpha": ones.copy(), "disparity": np.full((9, 11), 0.4, np.float32)}
+            arrays[field][(4, 7) + ((2,) if field == "rgb" else ())] = bad
+            with pytest.raises(ValueError, match=f"planes\\[0\\].{field} contains NaN or inf"):
+                render_planes([Plane(arrays["rgb"], arrays["alpha"], arrays["disparity"])], 0.3, 4.0)
+
+
+@pytest.mark.parametrize("method", ["layered", "exact"])
+def test_planar_result_is_the_same_image(method):
+    g = rng(22)
+    h, w = 40, 52
+    a = np.zeros((h, w), np.float32)
+    a[8:30, 10:40] = g.random((22, 30), dtype=np.float32)
+    ramp = np.broadcast_to(np.linspace(0.1, 0.5, w, dtype=np.float32)[None, :], (h, w))
+    planes = [opaque(g.random((h, w, 3), dtype=np.float32), ramp), Plane(g.random((h, w, 3), dtype=np.float32), a, 0.8)]
+    kw = {"method": method} | ({"samples": 64} if method == "exact" else {})
+    hwc = render_planes(planes, 0.3, 6.0, **kw)
+    chw = render_planes(planes, 0.3, 6.0, planar=True, **kw)
+    assert chw.shape == (3, h, w) and chw.dtype == np.float32
+    np.testing.assert_array_equal(chw, hwc.transpose(2, 0, 1))
