@@ -16,6 +16,8 @@ Columns:
   `px ratio`, the ratio of pixel counts (target: time grows no faster than the pixels).
 - `peak MiB/worker`: largest `ru_maxrss` measured inside a worker (1- and 2-worker runs), against
   the 1.5 GB (1536 MiB) target.
+- `--malloc default`: the workers keep glibc's own malloc settings (before/after comparisons of
+  `dofsynth.executors.tune_malloc`).
 - `w=1`, `w=2 samples/s`: end-to-end `generate` throughput (includes starting the workers and
   building the asset library in each, about 2-3 s); `speed-up` = w2 / w1 throughput, and
   `speed-up (steady)` = (s/sample/worker at w=1) / (s/sample/worker at w=2) * 2.
@@ -40,7 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from dofsynth.config import recipe_from_text  # noqa: E402
-from dofsynth.executors import LocalExecutor  # noqa: E402
+from dofsynth.executors import MALLOC_ENV, WORKER_MMAP_THRESHOLD, WORKER_TRIM_THRESHOLD, LocalExecutor  # noqa: E402
 from dofsynth.generate import _library_for, generate, render_one  # noqa: E402
 
 TARGET_MIB = 1536
@@ -98,7 +100,7 @@ def breakdown(recipe) -> None:
     from dofsynth.color import highlight_boost
     from dofsynth.compose import scene_layers
     from dofsynth.io import encode_exr
-    from dofsynth.record import encode_alphas, encode_srgb_png, sample_record
+    from dofsynth.record import encode_alphas, encode_srgb_png, encode_srgb_png_planar, sample_record
     from dofsynth.render import render_planes
     from dofsynth.scene import sample_scene
 
@@ -139,8 +141,8 @@ def breakdown(recipe) -> None:
     aperture = aperture_from_dict(record.get("aperture") or {"kind": "disk"})
     for n, t in enumerate(record["targets"]):
         img = step(f"render_planes target {n}", lambda: render_planes(planes, float(t["focus"]),
-                                                                      float(t["max_coc"]), aperture))
-        step(f"encode dof.{n}.png", lambda: encode_srgb_png(img))
+                                                                      float(t["max_coc"]), aperture, planar=True))
+        step(f"encode dof.{n}.png", lambda: encode_srgb_png_planar(img))
         del img
     tracemalloc.stop()
 
@@ -153,9 +155,17 @@ def main(argv=None) -> int:
                     help="samples per run (default 4 up to 1024 px, 2 above; even, so 2 workers share them)")
     ap.add_argument("--floor", action="store_true", help="also measure the I/O floor (in this process)")
     ap.add_argument("--breakdown", action="store_true", help="also trace one sample's memory step by step")
+    ap.add_argument("--malloc", default=None, metavar="SETTING",
+                    help="the workers' glibc malloc setting (DOFSYNTH_WORKER_MALLOC): 'default' = glibc's own, "
+                         "'MMAP_MIB,TRIM_MIB'; unset = dofsynth.executors' worker settings")
     args = ap.parse_args(argv)
+    if args.malloc is not None:
+        os.environ[MALLOC_ENV] = args.malloc  # spawn workers inherit it
+    setting = os.environ.get(MALLOC_ENV) or (f"{WORKER_MMAP_THRESHOLD >> 20},{WORKER_TRIM_THRESHOLD >> 20}"
+                                             " (mmap threshold, trim threshold MiB)")
     base = args.recipe.read_text(encoding="utf-8")
-    print(f"cores: {os.cpu_count()}, load average: {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
+    print(f"cores: {os.cpu_count()}, load average: {' '.join(f'{x:.1f}' for x in os.getloadavg())}, "
+          f"worker malloc: {setting}")
     print(f"{'size':>5} {'n':>3} {'s/sample':>9} {'x1024':>6} {'px ratio':>8} {'peak MiB/worker':>16} "
           f"{'w=1 samples/s':>14} {'w=2 samples/s':>14} {'speed-up':>9} {'(steady)':>9}"
           + (f" {'floor s':>8}" if args.floor else ""), flush=True)

@@ -20,6 +20,7 @@ import multiprocessing as mp
 import os
 import queue as queue_mod
 import signal
+import sys
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
@@ -83,9 +84,41 @@ def _shard_error(task: ShardTask, exc: BaseException) -> Exception:
 _POOL: dict = {"recipe": None, "queue": None}
 
 
+# glibc malloc settings of a worker process (mallopt parameter numbers from malloc.h). By
+# default glibc gives every block above a dynamic threshold (<= 32 MiB) its own mmap and hands
+# freed heap tops above 2x that threshold back to the kernel, so each FFT tile, strip and frame
+# of a sample comes back as fresh pages that are zeroed and faulted in again on first touch
+# (0.2-0.45 s per 192 MiB at 4096 px). A worker does one thing, the same sample shape again and
+# again: keeping blocks up to WORKER_MMAP_THRESHOLD on the heap and up to WORKER_TRIM_THRESHOLD
+# of free heap reuses those pages (docs/generate.md, "Speed"). Frame-sized blocks above the
+# mmap threshold still map and unmap, which bounds the extra memory.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+WORKER_MMAP_THRESHOLD = 32 << 20
+WORKER_TRIM_THRESHOLD = 512 << 20
+MALLOC_ENV = "DOFSYNTH_WORKER_MALLOC"  # "default": leave glibc's settings (benchmarks compare)
+
+
+def tune_malloc() -> bool:
+    """Apply the worker malloc settings to this process (glibc only; True if applied)."""
+    setting = os.environ.get(MALLOC_ENV, "")
+    if setting == "default" or not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        mmap_t, trim_t = WORKER_MMAP_THRESHOLD, WORKER_TRIM_THRESHOLD
+        if setting:  # "MMAP_MIB,TRIM_MIB" (benchmarks)
+            mmap_t, trim_t = (int(v) << 20 for v in setting.split(","))
+        return bool(libc.mallopt(_M_MMAP_THRESHOLD, mmap_t)) and bool(libc.mallopt(_M_TRIM_THRESHOLD, trim_t))
+    except (OSError, AttributeError, ValueError):
+        return False
+
+
 def _init_worker(recipe, q) -> None:
     import cv2
 
+    tune_malloc()
     cv2.setNumThreads(1)  # one core per worker: no oversubscription
     _POOL["recipe"], _POOL["queue"] = recipe, q
     _library_for(recipe)
@@ -203,6 +236,7 @@ def _ray_shard(recipe, out: str, split: str, index: int, limit: int | None) -> t
     Ray reuses worker processes, so the asset library is built once per worker."""
     import cv2
 
+    tune_malloc()  # a Ray worker process only runs such tasks
     cv2.setNumThreads(1)
     t0 = time.perf_counter()
     info = generate_shard(recipe, out, split, index, limit=limit, on_sample=_kill_hook(split, index))

@@ -391,3 +391,19 @@ def test_two_range_processes_at_once_into_one_out(recipe, reference, tmp_path):
     assert both, "the two ranges never ran at the same time"
     assert _merge(out) == 0
     assert _files(out) == _files(reference[0])
+
+
+def test_worker_malloc_settings(monkeypatch):
+    """Spawn and Ray workers keep freed blocks on glibc's heap (docs/generate.md, "Speed");
+    DOFSYNTH_WORKER_MALLOC=default leaves glibc alone, "MMAP_MIB,TRIM_MIB" overrides."""
+    from dofsynth.executors import MALLOC_ENV, tune_malloc
+
+    monkeypatch.setenv(MALLOC_ENV, "default")
+    assert tune_malloc() is False
+    code = ("import os, numpy as np; os.environ['%s'] = '%s'\n"
+            "from dofsynth.executors import tune_malloc\n"
+            "ok = tune_malloc(); a = np.ones((512, 512, 8)); del a; print(ok)")
+    for setting in ("", "16,64"):
+        out = subprocess.run([sys.executable, "-c", code % (MALLOC_ENV, setting)], capture_output=True, text=True,
+                             check=True)
+        assert out.stdout.strip() == str(sys.platform.startswith("linux"))
