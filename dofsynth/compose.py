@@ -12,7 +12,7 @@ depth sensor or a matting-free annotation would report.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -169,9 +169,11 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> Layers:
         planes.append(Plane(rgb=prgb, alpha=pa, disparity=float(params.disparity)))
 
     boxes = []
-    for p in planes[1:]:
+    for n, p in enumerate(planes[1:], 1):
         box = _alpha_box(p.alpha)
         boxes.append(box)
+        # the renderer, the boost and validation then look only inside the box
+        planes[n] = replace(p, box=(0, 0, 0, 0) if box is None else (box[0].start, box[0].stop, box[1].start, box[1].stop))
         if box is not None:
             d = disparity[box]
             d[p.alpha[box] >= COVER_THRESHOLD] = p.disparity

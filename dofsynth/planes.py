@@ -3,6 +3,11 @@
 Each plane holds linear-light colour `rgb` (H, W, 3) float32 (straight, not premultiplied),
 coverage `alpha` (H, W) in [0, 1] and normalized `disparity` in [0, 1] (1 = nearest): either
 a float (a plane of constant disparity) or an (H, W) map.
+
+`box` (optional, (y0, y1, x0, x1)): the plane's alpha is 0 outside rows y0:y1 and columns
+x0:x1. The layered renderer then reads colour and alpha only inside it (no search for the
+alpha's bounding box, validation of rgb and alpha only there); `compose.scene_layers` sets it
+to the tight box of alpha > 0. None: the whole frame is looked at.
 """
 from __future__ import annotations
 
@@ -16,6 +21,7 @@ class Plane:
     rgb: np.ndarray
     alpha: np.ndarray
     disparity: np.ndarray | float
+    box: tuple[int, int, int, int] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -52,8 +58,10 @@ def _range(name: str, arr: np.ndarray) -> tuple[float, float]:
     return lo, hi
 
 
-def validate_planes(planes, focus: float, max_coc: float) -> None:
-    """Refuse bad renderer input with a message that names the argument."""
+def validate_planes(planes, focus: float, max_coc: float, use_boxes: bool = True) -> None:
+    """Refuse bad renderer input with a message that names the argument. A plane's `box` is
+    checked against the frame; with `use_boxes` its rgb and alpha are checked only inside it
+    (what the layered renderer reads), else everywhere."""
     planes = list(planes)
     if not planes:
         raise ValueError("planes: need at least one plane")
@@ -74,8 +82,16 @@ def validate_planes(planes, focus: float, max_coc: float) -> None:
         d = np.asarray(p.disparity)
         if d.ndim != 0 and d.shape != shape:
             raise ValueError(f"planes[{i}].disparity must be a float or {shape}, got shape {d.shape}")
+        inside = (slice(None), slice(None))
+        box = getattr(p, "box", None)
+        if box is not None:
+            if (len(box) != 4 or not all(isinstance(v, (int, np.integer)) for v in box)
+                    or not (0 <= box[0] <= box[1] <= shape[0] and 0 <= box[2] <= box[3] <= shape[1])):
+                raise ValueError(f"planes[{i}].box must be (y0, y1, x0, x1) inside the {shape} frame, got {box}")
+            if use_boxes:
+                inside = (slice(int(box[0]), int(box[1])), slice(int(box[2]), int(box[3])))
         (rgb_lo, _), (a_lo, a_hi), (d_lo, d_hi) = (_range(f"planes[{i}].{name}", arr) for name, arr in
-                                                   (("rgb", rgb), ("alpha", alpha), ("disparity", d)))
+                                                   (("rgb", rgb[inside]), ("alpha", alpha[inside]), ("disparity", d)))
         if a_lo < 0 or a_hi > 1:
             raise ValueError(f"planes[{i}].alpha must lie in [0, 1], got [{a_lo}, {a_hi}]")
         if d_lo < 0 or d_hi > 1:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -103,7 +104,7 @@ def boosted_planes(planes, highlight: dict | None) -> list[Plane]:
     """Planes with `color.highlight_boost` applied to their colour (unchanged when None)."""
     if highlight is None:
         return list(planes)
-    return [Plane(rgb=highlight_boost(p.rgb, **highlight), alpha=p.alpha, disparity=p.disparity) for p in planes]
+    return [replace(p, rgb=highlight_boost(p.rgb, **highlight)) for p in planes]
 
 
 def _encode_bgr(bgr: np.ndarray, params) -> bytes:
@@ -214,7 +215,12 @@ def render_sample(scene, library, recipe) -> dict[str, bytes]:
         # the planes are this call's own fresh arrays: boost in place (no frame-sized copies)
         for i, p in enumerate(planes):
             rgb = p.rgb
-            if i > 0:  # a cutout's colour is 0 outside its alpha box: only the box can change
+            if i > 0 and p.box is not None:  # a cutout's colour is 0 outside its alpha box
+                y0, y1, x0, x1 = p.box
+                if y1 <= y0 or x1 <= x0:
+                    continue
+                rgb = rgb[y0:y1, x0:x1]
+            elif i > 0:  # the same box, searched for
                 on = np.asarray(p.alpha) > 0
                 rows = np.flatnonzero(on.any(axis=1))
                 if rows.size == 0:
@@ -226,7 +232,7 @@ def render_sample(scene, library, recipe) -> dict[str, bytes]:
     else:
         blur_planes = boosted_planes(planes, highlight)
     if not linear_light:  # the naive baseline: blur sRGB-encoded values, store them as they are
-        blur_planes = [Plane(rgb=linear_to_srgb(p.rgb), alpha=p.alpha, disparity=p.disparity) for p in blur_planes]
+        blur_planes = [replace(p, rgb=linear_to_srgb(p.rgb)) for p in blur_planes]
     del planes
     for n, t in enumerate(record["targets"]):
         if linear_light:  # planar (3, H, W): encoded in row blocks, no interleaved frame copy

@@ -50,6 +50,13 @@ def test_layers_shapes_and_renderer_contract(layers_of):
         assert L.planes[1].disparity == s.middle.disparity and L.planes[2].disparity == s.front.disparity
         for t in s.targets:
             validate_planes(L.planes, t.focus, t.max_coc)
+        assert L.planes[0].box is None
+        for p in L.planes[1:]:  # each cutout carries the tight box of alpha > 0 (empty: (0, 0, 0, 0))
+            y0, y1, x0, x1 = p.box
+            on = p.alpha > 0
+            assert on[y0:y1, x0:x1].sum() == on.sum()
+            if on.any():
+                assert on[y0].any() and on[y1 - 1].any() and on[:, x0].any() and on[:, x1 - 1].any()
 
 
 def test_planes_are_in_front_of_what_they_cover(layers_of):

@@ -367,3 +367,30 @@ def test_planar_result_is_the_same_image(method):
     chw = render_planes(planes, 0.3, 6.0, planar=True, **kw)
     assert chw.shape == (3, h, w) and chw.dtype == np.float32
     np.testing.assert_array_equal(chw, hwc.transpose(2, 0, 1))
+
+
+def test_plane_box_gives_the_same_image_and_is_checked():
+    """A cutout's `box` (alpha 0 outside) only saves work: the same pixels as without it, also
+    for a loose box; an empty box is a transparent plane; a box outside the frame is refused."""
+    from dataclasses import replace
+
+    g = rng(23)
+    h, w = 48, 60
+    a = np.zeros((h, w), np.float32)
+    a[10:30, 15:41] = g.random((20, 26), dtype=np.float32)
+    fg = Plane(g.random((h, w, 3), dtype=np.float32), a, 0.8)
+    bg = opaque(g.random((h, w, 3), dtype=np.float32), 0.2)
+    ref = render_planes([bg, fg], 0.4, 7.0)
+    for box in ((10, 30, 15, 41), (5, 40, 0, 60)):
+        np.testing.assert_array_equal(render_planes([bg, replace(fg, box=box)], 0.4, 7.0), ref)
+    np.testing.assert_array_equal(render_planes([bg, replace(fg, box=(0, 0, 0, 0))], 0.4, 7.0),
+                                  render_planes([bg], 0.4, 7.0))
+    # outside the box the renderer reads nothing: NaN there is not looked at (exact mode checks all)
+    nan_out = fg.rgb.copy()
+    nan_out[0, 0] = np.nan
+    np.testing.assert_array_equal(render_planes([bg, Plane(nan_out, a, 0.8, (10, 30, 15, 41))], 0.4, 7.0), ref)
+    with pytest.raises(ValueError, match="planes\\[1\\].rgb contains NaN"):
+        render_planes([bg, Plane(nan_out, a, 0.8, (10, 30, 15, 41))], 0.4, 7.0, method="exact", samples=16)
+    for bad in ((10, 30, 15, 61), (30, 10, 15, 41), (0, 1, 2), (0.5, 30, 15, 41)):
+        with pytest.raises(ValueError, match="planes\\[1\\].box"):
+            render_planes([bg, replace(fg, box=bad)], 0.4, 7.0)
