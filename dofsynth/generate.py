@@ -15,7 +15,7 @@ partial manifest `OUT/manifest.part-A-B.json`; disjoint ranges may run at once i
 manifest.json a single run writes.
 
 Safety of the output folder `OUT`:
-- `OUT/.lock` (fcntl.flock) refuses a second concurrent run into OUT: a whole run holds it
+- `OUT/.lock` (fcntl.flock, `dofsynth.locks`) refuses a second concurrent run into OUT: a whole run holds it
   exclusively (its pid inside), `--shards` runs hold it shared plus `OUT/.lock.part-A-B`
   exclusively, and refuse a live overlapping range.
 - Without `resume`, an OUT holding anything is refused (never silently mixed); a `--shards`
@@ -31,7 +31,6 @@ Safety of the output folder `OUT`:
 """
 from __future__ import annotations
 
-import fcntl
 import os
 import re
 import resource
@@ -40,6 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dofsynth import __version__
+from dofsynth.locks import LOCK_NAME, OutputInUseError, OutputLock, RangeLock
 from dofsynth.manifest import (MANIFEST_NAME, PART_RE, PROGRESS_NAME, PROGRESS_PART_RE, append_progress,
                                build_manifest, build_part, load_manifest, load_part, manifest_shard_infos,
                                part_name, progress_part_name, read_progress, remove_progress, start_progress,
@@ -48,11 +48,6 @@ from dofsynth.shards import (TEMP_MARK, ShardError, ShardInfo, ShardWriter, is_t
                              sample_key, shard_keys, shard_name, sha256_file)
 
 SPLITS = ("train", "test")
-LOCK_NAME = ".lock"
-
-
-class OutputInUseError(ValueError):
-    """Another run holds the output folder's lock."""
 
 
 class OutputNotEmptyError(ValueError):
@@ -159,150 +154,6 @@ def generate_shard(recipe, out, split: str, shard_index: int, *, limit: int | No
 def peak_rss_mb() -> float:
     """This process's peak resident memory in MiB (ru_maxrss, KiB on Linux)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-# ------------------------------------------------------------------------------ the locks
-class OutputLock:
-    """`OUT/.lock` (or `OUT/<name>`): a non-blocking fcntl.flock, exclusive (a whole run or a
-    merge; the holder's pid inside) or `shared` (the `--shards A:B` runs, which share OUT with
-    each other but never with a whole run or a merge).
-
-    An exclusive holder removes the file on release; a shared holder removes it only if it can
-    then lock it exclusively (it was the last one). A lock file left by a killed run is not a
-    lock (the kernel drops flock locks with their process), so it never blocks a later run.
-    On a shared file system across machines this needs flock support there (NFSv4, Lustre
-    mounted with `-o flock`, BeeGFS, GPFS); elsewhere it protects within one machine only.
-    """
-
-    def __init__(self, out: str | os.PathLike, name: str = LOCK_NAME, shared: bool = False):
-        self.out = Path(out)
-        self.path = self.out / name
-        self.shared = shared
-        self.fd: int | None = None
-
-    def acquire(self) -> "OutputLock":
-        self.out.mkdir(parents=True, exist_ok=True)
-        mode = fcntl.LOCK_SH if self.shared else fcntl.LOCK_EX
-        while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-            try:
-                fcntl.flock(fd, mode | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = os.read(fd, 64).decode(errors="replace").strip()
-                os.close(fd)
-                raise OutputInUseError(self._busy(holder)) from None
-            if _same_file(self.path, fd):  # the holder we raced with may have unlinked it
-                break
-            os.close(fd)
-        if not self.shared:
-            os.ftruncate(fd, 0)
-            os.write(fd, f"{os.getpid()}\n".encode())
-            os.fsync(fd)
-        self.fd = fd
-        return self
-
-    def _busy(self, holder: str) -> str:
-        if holder:
-            who = f"another dofsynth run (pid {holder})"
-        else:
-            ranges = sorted(p.name for p in self.out.glob(f"{LOCK_NAME}.part-*"))
-            who = "dofsynth --shards runs" + (f" ({', '.join(ranges[:4])})" if ranges else "")
-        return (f"{self.out}: {who} {'is' if holder else 'are'} writing into this folder (lock {self.path}); "
-                "wait for it to finish or choose another --out")
-
-    def release(self) -> None:
-        if self.fd is None:
-            return
-        try:
-            if self.shared:
-                try:  # the last shared holder removes the file
-                    fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    if _same_file(self.path, self.fd):
-                        self.path.unlink(missing_ok=True)
-                except BlockingIOError:
-                    pass
-            else:
-                self.path.unlink(missing_ok=True)
-            fcntl.flock(self.fd, fcntl.LOCK_UN)
-        finally:
-            os.close(self.fd)
-            self.fd = None
-
-    def __enter__(self) -> "OutputLock":
-        return self.acquire()
-
-    def __exit__(self, *exc) -> None:
-        self.release()
-
-
-def _same_file(path: Path, fd: int) -> bool:
-    try:
-        return os.stat(path).st_ino == os.fstat(fd).st_ino
-    except FileNotFoundError:
-        return False
-
-
-def range_lock_name(first: int, stop: int) -> str:
-    return f"{LOCK_NAME}.part-{first:06d}-{stop:06d}"
-
-
-class RangeLock:
-    """The locks of a `--shards A:B` run: `OUT/.lock` shared (no whole run or merge meanwhile)
-    and `OUT/.lock.part-A-B` exclusive (not the same range twice); then any other live range
-    lock that overlaps A:B is refused (two overlapping runs starting together both refuse)."""
-
-    def __init__(self, out: str | os.PathLike, first: int, stop: int):
-        self.out, self.first, self.stop = Path(out), first, stop
-        self.locks: list[OutputLock] = []
-
-    def acquire(self) -> "RangeLock":
-        try:
-            self.locks.append(OutputLock(self.out, shared=True).acquire())
-            own = OutputLock(self.out, range_lock_name(self.first, self.stop))
-            try:
-                self.locks.append(own.acquire())
-            except OutputInUseError as exc:
-                raise OutputInUseError(f"{self.out}: shards {self.first}:{self.stop} are being made by another "
-                                       f"run ({exc})") from None
-            for p in sorted(self.out.glob(f"{LOCK_NAME}.part-*")):
-                m = re.fullmatch(r"\.lock\.part-(\d+)-(\d+)", p.name)
-                if not m or p == own.path:
-                    continue
-                a, b = int(m[1]), int(m[2])
-                if a < self.stop and self.first < b and _held(p):
-                    raise OutputInUseError(f"{self.out}: --shards {self.first}:{self.stop} overlaps {a}:{b}, which "
-                                           f"a running dofsynth run holds ({p.name}); the ranges of one data set "
-                                           "must be disjoint")
-        except BaseException:
-            self.release()
-            raise
-        return self
-
-    def release(self) -> None:
-        while self.locks:
-            self.locks.pop().release()
-
-    def __enter__(self) -> "RangeLock":
-        return self.acquire()
-
-    def __exit__(self, *exc) -> None:
-        self.release()
-
-
-def _held(path: Path) -> bool:
-    """Whether some process holds an exclusive flock on `path`."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except FileNotFoundError:
-        return False
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        return False
-    except BlockingIOError:
-        return True
-    finally:
-        os.close(fd)
 
 
 # ------------------------------------------------------------------------------- the run

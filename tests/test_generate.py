@@ -12,8 +12,9 @@ import pytest
 
 from dofsynth.cli import main
 from dofsynth.config import load_recipe, recipe_from_text
-from dofsynth.generate import (OutputInUseError, OutputLock, OutputNotEmptyError, ResumeError, generate,
-                               generate_shard, plan_split, render_one, shard_task, _library_for)
+from dofsynth.generate import (OutputNotEmptyError, ResumeError, generate, generate_shard, plan_split, render_one,
+                               shard_task, _library_for)
+from dofsynth.locks import OutputInUseError, OutputLock
 from dofsynth.manifest import load_manifest
 from dofsynth.shards import read_shard
 
@@ -296,7 +297,7 @@ def test_shard_range_resume_after_kill_and_refusals(recipe, reference, tmp_path,
 
 
 def test_concurrent_disjoint_ranges_share_out_but_not_with_a_whole_run(recipe, tmp_path):
-    from dofsynth.generate import RangeLock
+    from dofsynth.locks import RangeLock
 
     out = tmp_path / "shared"
     with RangeLock(out, 0, 2):       # a running --shards 0:2 (say on another node)

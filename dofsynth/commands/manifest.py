@@ -69,7 +69,8 @@ def _parts(args) -> tuple[list[Path], Path]:
 def merge(parts: list[Path], out: Path, keep_parts: bool = False) -> tuple[dict, list[str]]:
     """Merge `parts` into the manifest file `out`; check the shards against the folder of
     `out`; returns (manifest, removed files)."""
-    from dofsynth.generate import LOCK_NAME, OutputLock, _remove_temps
+    from dofsynth.generate import _remove_temps
+    from dofsynth.locks import LOCK_NAME, OutputLock
     from dofsynth.manifest import (MANIFEST_NAME, PROGRESS_PART_RE, canonical_json, merge_parts)
     from dofsynth.io import atomic_write_bytes
     from dofsynth.shards import is_temp_name
