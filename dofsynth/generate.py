@@ -196,8 +196,9 @@ class GenerateResult:
         lines += [
             f"  samples  {self.samples} in {self.shards} shards ({self.generated_samples} rendered "
             f"in {self.generated_shards} shards{kept})",
-            f"  time     {self.seconds:.1f} s, {self.samples_per_second:.2f} samples/s "
-            f"({self.seconds_per_sample_per_worker:.3f} s per sample per worker)",
+            f"  time     {self.seconds:.1f} s" + (
+                f", {self.samples_per_second:.2f} samples/s ({self.seconds_per_sample_per_worker:.3f} s per "
+                "sample per worker)" if self.generated_samples else ": nothing left to render"),
             f"  size     {self.bytes / 1e6:.1f} MB",
             f"  skipped  {len(self.skipped_assets)} assets" + (
                 ": " + ", ".join(str(a) for a in self.skipped_assets[:5]) if self.skipped_assets else ""),
