@@ -18,17 +18,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def smoke(smoke_set) -> Path:
-    return smoke_set
-
-
-@pytest.fixture(scope="module")
-def sheet4(smoke, tmp_path_factory):
+def sheet4(smoke_set, tmp_path_factory):
     """A 4-row sheet of the train split: (image, layout, samples)."""
-    path = sheets.write_sheet(smoke, split="train", n=4, seed=5, path=tmp_path_factory.mktemp("s") / "s.png")
+    path = sheets.write_sheet(smoke_set, split="train", n=4, seed=5, path=tmp_path_factory.mktemp("s") / "s.png")
     img = np.round(read_image(path) * 255).astype(np.uint8)
-    keys = sheets.choose_keys(ds.load(smoke), "train", 4, 5)
-    samples = ds.read_samples(smoke, "train", keys)
+    keys = sheets.choose_keys(ds.load(smoke_set), "train", 4, 5)
+    samples = ds.read_samples(smoke_set, "train", keys)
     lay = sheets.sheet_layout(4, 2, (64, 64), 192)
     return img, lay, samples
 
@@ -117,8 +112,8 @@ def test_labels_header_and_captions_have_text(sheet4):
     assert labels[3] == f"focus {t[0]['focus']:.2f}  max CoC {t[0]['max_coc']:.1f}px"
 
 
-def test_sample_choice_is_deterministic(smoke):
-    m = ds.load(smoke)
+def test_sample_choice_is_deterministic(smoke_set):
+    m = ds.load(smoke_set)
     a = sheets.choose_keys(m, "train", 3, 1)
     assert a == sheets.choose_keys(m, "train", 3, 1) and a == sorted(a) and len(set(a)) == 3
     assert len({tuple(sheets.choose_keys(m, "train", 3, s)) for s in range(6)}) > 1
@@ -127,30 +122,30 @@ def test_sample_choice_is_deterministic(smoke):
         sheets.choose_keys(m, "valid", 3, 0)
 
 
-def test_default_path_and_cli(smoke, tmp_path, capsys):
+def test_default_path_and_cli(smoke_set, tmp_path, capsys):
     own = tmp_path / "set"
-    shutil.copytree(smoke, own)                       # the shared set stays untouched
+    shutil.copytree(smoke_set, own)                       # the shared set stays untouched
     p = sheets.write_sheet(own)                       # the test split, into the data set folder
     assert p == own / "sheet-test.png"
     lay = sheets.sheet_layout(2, 2, (64, 64), 192)
     assert read_image(p).shape == (lay.height, lay.width, 3)
     out = tmp_path / "cli.png"
-    assert main(["sheet", str(smoke), "--split", "train", "--n", "2", "--thumb", "96", "--out", str(out)]) == 0
+    assert main(["sheet", str(smoke_set), "--split", "train", "--n", "2", "--thumb", "96", "--out", str(out)]) == 0
     assert capsys.readouterr().out.strip() == str(out)
     lay = sheets.sheet_layout(2, 2, (64, 64), 96)
     assert read_image(out).shape == (lay.header_h + 2 * lay.row_h, lay.width, 3)
-    assert main(["sheet", str(smoke), "--n", "0"]) == 2
+    assert main(["sheet", str(smoke_set), "--n", "0"]) == 2
     assert main(["sheet", str(tmp_path / "nowhere")]) == 2
 
 
-def test_html_page_links_full_size_images_and_sweeps(smoke, tmp_path):
-    page = sheets.write_html(smoke, tmp_path / "html", split="train", n=3, seed=2, sweep=1, sweep_steps=4)
+def test_html_page_links_full_size_images_and_sweeps(smoke_set, tmp_path):
+    page = sheets.write_html(smoke_set, tmp_path / "html", split="train", n=3, seed=2, sweep=1, sweep_steps=4)
     text = page.read_text()
-    keys = sheets.choose_keys(ds.load(smoke), "train", 3, 2)
+    keys = sheets.choose_keys(ds.load(smoke_set), "train", 3, 2)
     links = re.findall(r'href="(img/[^"]+)"', text)
     assert links and all((page.parent / l).is_file() for l in links)
     for key in keys:
-        members = ds.read_members(smoke, "train", key)
+        members = ds.read_members(smoke_set, "train", key)
         # the full-size images are the shard's own bytes
         assert (page.parent / "img" / f"{key}.aif.png").read_bytes() == members["aif.png"]
         assert (page.parent / "img" / f"{key}.dof.1.png").read_bytes() == members["dof.1.png"]
@@ -165,15 +160,15 @@ def test_html_page_links_full_size_images_and_sweeps(smoke, tmp_path):
     assert "focus 0.00" in text and "focus 1.00" in text
 
 
-def test_focus_sweep_at_a_target_focus_is_that_target(smoke):
+def test_focus_sweep_at_a_target_focus_is_that_target(smoke_set):
     """Re-rendering a record at its own target's focus gives the stored DoF image exactly."""
     from dofsynth.assets import build_library
 
-    m = ds.load(smoke)
-    recipe = ds.recipe_from_manifest(m, smoke)
+    m = ds.load(smoke_set)
+    recipe = ds.recipe_from_manifest(m, smoke_set)
     library = build_library(recipe)
     key = ds.split_keys(m, "test")[1]
-    members = ds.read_members(smoke, "test", key)
+    members = ds.read_members(smoke_set, "test", key)
     s = ds.decode_sample(members, key)
     t0 = s["record"]["targets"][0]
     frames = sheets.focus_sweep(s["record"], library, recipe, [t0["focus"], 0.0])
@@ -181,13 +176,13 @@ def test_focus_sweep_at_a_target_focus_is_that_target(smoke):
     np.testing.assert_array_equal(frames[0], want)
 
 
-def test_reader_picks_exactly_the_asked_samples(smoke):
+def test_reader_picks_exactly_the_asked_samples(smoke_set):
     """dataset.read_members_many (used by the sheet) returns what a full shard read returns."""
-    everything = {s["key"]: s["members"] for s in ds.iter_samples(smoke, "train", decode=False)}
+    everything = {s["key"]: s["members"] for s in ds.iter_samples(smoke_set, "train", decode=False)}
     keys = ["train-0000005", "train-0000000", "train-0000003"]
-    got = ds.read_members_many(smoke, "train", keys)
+    got = ds.read_members_many(smoke_set, "train", keys)
     assert list(got) == keys
     assert all(got[k] == everything[k] for k in keys)
     assert set(got[keys[0]]) == {"json", "aif.png", "depth.exr", "cover.png", "dof.0.png", "dof.1.png"}
     with pytest.raises(ValueError, match="train-0000042"):
-        ds.read_members_many(smoke, "train", ["train-0000042"])
+        ds.read_members_many(smoke_set, "train", ["train-0000042"])

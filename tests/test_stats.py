@@ -17,21 +17,16 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def smoke(smoke_set) -> Path:
-    return smoke_set
-
-
-@pytest.fixture(scope="module")
-def computed(smoke, tmp_path_factory):
+def computed(smoke_set, tmp_path_factory):
     d = tmp_path_factory.mktemp("out")
-    png, js, st = stats.write_stats(smoke, path=d / "stats.png", json_path=d / "stats.json")
+    png, js, st = stats.write_stats(smoke_set, path=d / "stats.png", json_path=d / "stats.json")
     return png, js, st
 
 
 @pytest.fixture(scope="module")
-def decoded(smoke):
-    m = ds.load(smoke)
-    return {s: list(ds.iter_samples(smoke, s)) for s in ds.manifest_splits(m)}
+def decoded(smoke_set):
+    m = ds.load(smoke_set)
+    return {s: list(ds.iter_samples(smoke_set, s)) for s in ds.manifest_splits(m)}
 
 
 def test_counts_equal_the_number_of_samples(computed, decoded):
@@ -114,15 +109,15 @@ def test_chart_layout_and_pixels(computed):
             assert abs(col - round(ph * c / top)) <= 1, (split, i, col, c)
 
 
-def test_cli_and_errors(smoke, tmp_path, capsys):
+def test_cli_and_errors(smoke_set, tmp_path, capsys):
     out_png, out_json = tmp_path / "s.png", tmp_path / "s.json"
-    assert main(["stats", str(smoke), "--out", str(out_png), "--json", str(out_json), "--split", "test"]) == 0
+    assert main(["stats", str(smoke_set), "--out", str(out_png), "--json", str(out_json), "--split", "test"]) == 0
     text = capsys.readouterr().out
     assert "test: 2 samples, 4 targets, 16384 target pixels" in text and str(out_png) in text
     st = json.loads(out_json.read_text())
     assert list(st["splits"]) == ["test"]
     w, h, _ = stats.chart_layout(1)
     assert read_image(out_png).shape == (h, w, 3)
-    assert main(["stats", str(smoke), "--split", "valid"]) == 2
+    assert main(["stats", str(smoke_set), "--split", "valid"]) == 2
     assert "split 'valid'" in capsys.readouterr().err
     assert main(["stats", str(tmp_path / "nowhere")]) == 2

@@ -1,4 +1,4 @@
-"""`dofsynth verify`: passes on a fresh data set, fails naming the place on each kind of damage."""
+"""`dofsynth verify`: passes on a smoke_set data set, fails naming the place on each kind of damage."""
 from __future__ import annotations
 
 import hashlib
@@ -68,15 +68,10 @@ def _fix_manifest(out, manifest, name, data):
 
 
 # ---------------------------------------------------------------- fixtures
-@pytest.fixture(scope="module")
-def fresh(smoke_set) -> Path:
-    return smoke_set
-
-
 @pytest.fixture
-def copy(fresh, tmp_path) -> Path:
+def copy(smoke_set, tmp_path) -> Path:
     dst = tmp_path / "set"
-    shutil.copytree(fresh, dst)
+    shutil.copytree(smoke_set, dst)
     return dst
 
 
@@ -97,19 +92,19 @@ def _records(out: Path) -> list[tuple[str, dict, np.ndarray]]:
             for smp in ds.iter_samples(out, split)]
 
 
-def test_fresh_dataset_passes(fresh, capsys):
-    report = verify_dataset(fresh)
+def test_fresh_dataset_passes(smoke_set, capsys):
+    report = verify_dataset(smoke_set)
     assert report.ok, report.lines()
-    m = ds.load(fresh)
+    m = ds.load(smoke_set)
     n = {s: sum(sh.samples for sh in ds.manifest_shards(m, s)) for s in ds.manifest_splits(m)}
     assert report.splits == n == {"train": 6, "test": 2}
     assert report.samples == 8 and report.shards == 4
-    rc, out = _run(fresh, capsys)
+    rc, out = _run(smoke_set, capsys)
     assert rc == 0 and out.splitlines()[-1].endswith("OK") and "FAIL" not in out
 
 
-def test_deep_rerender_matches(fresh, capsys):
-    rc, out = _run(fresh, capsys, "--deep", "--deep-n", "3")
+def test_deep_rerender_matches(smoke_set, capsys):
+    rc, out = _run(smoke_set, capsys, "--deep", "--deep-n", "3")
     assert rc == 0, out
     assert "3 re-rendered" in out.splitlines()[-1]
 
@@ -229,8 +224,8 @@ def test_asset_leaked_across_splits_is_caught(copy):
     assert {"id", "sha256"} == {m.split("asset ")[1].split()[0] for m in msgs}
 
 
-def test_schema_errors_are_named(fresh):
-    rec = next(ds.iter_samples(fresh, "train"))["record"]
+def test_schema_errors_are_named(smoke_set):
+    rec = next(ds.iter_samples(smoke_set, "train"))["record"]
     assert check_record_schema(rec) == []
     bad = json.loads(json.dumps(rec))
     del bad["targets"][1]["max_coc"]
@@ -275,12 +270,12 @@ def test_run_in_progress_fails_and_leftovers_are_noted(copy, capsys):
     assert "NOTE train/.train-000009.tar.tmp-123: temporary file left by a killed run" in out
 
 
-def test_deep_with_recipe_file(fresh, tmp_path, capsys):
-    rc, out = _run(fresh, capsys, "--deep", "--deep-n", "1", "--recipe", str(ROOT / "recipes" / "smoke.toml"))
+def test_deep_with_recipe_file(smoke_set, tmp_path, capsys):
+    rc, out = _run(smoke_set, capsys, "--deep", "--deep-n", "1", "--recipe", str(ROOT / "recipes" / "smoke.toml"))
     assert rc == 0 and "1 re-rendered" in out, out
     other = tmp_path / "other.toml"
     other.write_text((ROOT / "recipes" / "smoke.toml").read_text().replace("seed = 7", "seed = 8"))
-    rc, out = _run(fresh, capsys, "--deep", "--recipe", str(other))
+    rc, out = _run(smoke_set, capsys, "--deep", "--recipe", str(other))
     assert rc == 1 and f"FAIL {other}: --recipe: not the recipe this data set was made from" in out
 
 
