@@ -1,4 +1,4 @@
-"""`dofsynth verify`: passes on a smoke_set data set, fails naming the place on each kind of damage."""
+"""`dofsynth verify`: passes on a fresh smoke data set, fails naming the place on each kind of damage."""
 from __future__ import annotations
 
 import hashlib
