@@ -134,7 +134,9 @@ def test_default_path_and_cli(smoke_set, tmp_path, capsys):
     assert capsys.readouterr().out.strip() == str(out)
     lay = sheets.sheet_layout(2, 2, (64, 64), 96)
     assert read_image(out).shape == (lay.header_h + 2 * lay.row_h, lay.width, 3)
-    assert main(["sheet", str(smoke_set), "--n", "0"]) == 2
+    with pytest.raises(SystemExit) as exc:                # argparse refuses it: status 2
+        main(["sheet", str(smoke_set), "--n", "0"])
+    assert exc.value.code == 2 and "--n" in capsys.readouterr().err
     assert main(["sheet", str(tmp_path / "nowhere")]) == 2
 
 

@@ -1,6 +1,8 @@
 """`dofsynth eval RUN --data OUT`: PSNR/SSIM of a trained run next to the classical renderer."""
 from __future__ import annotations
 
+from dofsynth.commands import int_at_least
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -16,7 +18,7 @@ def register(subparsers) -> None:
     p.add_argument("run_dir", metavar="RUN", help="run folder written by `dofsynth train`")
     p.add_argument("--data", required=True, help="data set folder with a test split")
     p.add_argument("--split", default="test", help="which split to score (default: test)")
-    p.add_argument("--limit", type=int, default=None, help="score only the first N samples")
+    p.add_argument("--limit", type=int_at_least(1), default=None, help="score only the first N samples")
     p.add_argument("--no-classical", action="store_true", help="skip the classical renderer")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"], help="default: cuda when available")
     p.set_defaults(func=run)
@@ -29,8 +31,6 @@ def run(args) -> int:
 
     if not Path(args.run_dir).is_dir():
         raise FileNotFoundError(f"RUN {args.run_dir}: no such run folder")
-    if args.limit is not None and args.limit < 1:
-        raise ValueError(f"--limit must be >= 1, got {args.limit}")
     result = evaluate_run(args.run_dir, args.data, split=args.split, limit=args.limit,
                           classical=not args.no_classical, device=args.device)
     print(format_table(result))

@@ -1,6 +1,8 @@
 """`dofsynth sheet OUT`: a contact sheet (PNG) and optionally a static HTML page of a data set."""
 from __future__ import annotations
 
+from dofsynth.commands import int_at_least
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -17,7 +19,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("out", help="the data set folder (holds manifest.json)")
     p.add_argument("--split", default="test", help="which split to show (default: test)")
-    p.add_argument("--n", type=int, default=24, help="how many samples, one row each (default: 24)")
+    p.add_argument("--n", type=int_at_least(1), default=24, help="how many samples, one row each (default: 24)")
     p.add_argument("--seed", type=int, default=0, help="picks the samples; the same seed shows the same ones (default: 0)")
     p.add_argument("--out", dest="path", default=None, metavar="PNG",
                    help="where to write the sheet (default: OUT/sheet-SPLIT.png)")
@@ -32,8 +34,6 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from dofsynth.sheets import write_html, write_sheet
 
-    if args.n < 1:
-        raise ValueError(f"--n must be >= 1, got {args.n}")
     if not 16 <= args.thumb <= 2048:
         raise ValueError(f"--thumb must be between 16 and 2048 pixels, got {args.thumb}")
     path = write_sheet(args.out, split=args.split, n=args.n, seed=args.seed, path=args.path, thumb=args.thumb)

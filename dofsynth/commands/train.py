@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from dofsynth.commands import int_at_least
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -22,7 +24,7 @@ def register(subparsers) -> None:
     p.add_argument("--run", required=True, help="run folder for checkpoints, logs and config")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
                    help="where to train (auto = cuda when available)")
-    p.add_argument("--steps", type=int, default=None, help="stop after step N this time (the LR schedule still runs to train.max_steps; "
+    p.add_argument("--steps", type=int_at_least(0), default=None, help="stop after step N this time (the LR schedule still runs to train.max_steps; "
                         "run again without --steps to continue)")
     p.set_defaults(func=run)
 
@@ -35,7 +37,5 @@ def run(args) -> int:
 
     if not Path(args.data).is_dir():
         raise FileNotFoundError(f"--data {args.data}: no such data set folder")
-    if args.steps is not None and args.steps < 0:
-        raise ValueError(f"--steps must be >= 0, got {args.steps}")
     train(load(args.config), args.data, args.run, device=args.device, stop_at=args.steps)
     return 0

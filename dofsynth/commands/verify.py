@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from dofsynth.commands import int_at_least
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -20,7 +22,7 @@ def register(subparsers) -> None:
     p.add_argument("out", help="the data set folder (holds manifest.json)")
     p.add_argument("--deep", action="store_true",
                    help="also re-render a sample of records from their JSON and compare the bytes")
-    p.add_argument("--deep-n", type=int, default=8, metavar="N",
+    p.add_argument("--deep-n", type=int_at_least(1), default=8, metavar="N",
                    help="how many records --deep re-renders (default: 8)")
     p.add_argument("--seed", type=int, default=0, help="picks the records --deep re-renders (default: 0)")
     p.add_argument("--recipe", default=None, metavar="TOML",
@@ -32,8 +34,6 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from dofsynth.verify import verify_dataset
 
-    if args.deep_n < 1:
-        raise ValueError(f"--deep-n must be >= 1, got {args.deep_n}")
     from tqdm import tqdm
 
     with tqdm(desc="verify", unit="sample", disable=None, leave=False) as bar:
