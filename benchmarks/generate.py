@@ -151,8 +151,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--recipe", type=Path, default=ROOT / "recipes" / "deeplens-18k.toml")
     ap.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048, 4096])
-    ap.add_argument("--samples", type=int, default=0,
-                    help="samples per run (default 4 up to 1024 px, 2 above; even, so 2 workers share them)")
+    ap.add_argument("--samples", type=int, default=4,
+                    help="samples per run, the same ones at every size (default 4; even, so 2 workers share them)")
     ap.add_argument("--floor", action="store_true", help="also measure the I/O floor (in this process)")
     ap.add_argument("--breakdown", action="store_true", help="also trace one sample's memory step by step")
     ap.add_argument("--malloc", default=None, metavar="SETTING",
@@ -171,7 +171,7 @@ def main(argv=None) -> int:
           + (f" {'floor s':>8}" if args.floor else ""), flush=True)
     first = None
     for size in args.sizes:
-        n = args.samples or (4 if size <= 1024 else 2)
+        n = args.samples
         recipe = bench_recipe(base, size, n)
         runs = {}
         with tempfile.TemporaryDirectory() as tmp:

@@ -43,11 +43,15 @@ def _kernel_spectrum(k: np.ndarray, n0: int, n1: int) -> np.ndarray:
     return sfft.fft(part, n=n0, axis=0)
 
 
-# FFT convolutions whose padded side exceeds TILE_ABOVE run as overlap-add over tiles with an
-# FFT side of about TILE_FFT: the FFT's cost per pixel grows with its size (cache misses), and
-# tile-sized spectra come back from the allocator instead of fresh frame-sized ones.
-TILE_FFT = 1024
+# Large FFT convolutions run as overlap-add over bands of rows: once the padded height exceeds
+# TILE_ABOVE, bands with an FFT height of next_fast_len(max(TILE_ROWS, TILE_S * S)), each as wide
+# as the input up to TILE_WIDE padded columns (wider inputs are also cut into column tiles of
+# about TILE_WIDE / 2). The FFT's cost per pixel grows with its size (cache misses), least so
+# along the contiguous rows: short full-width bands beat square tiles (docs/rendering.md).
 TILE_ABOVE = 1536
+TILE_ROWS = 768
+TILE_WIDE = 4700
+TILE_S = 4
 
 
 class _Conv:
@@ -68,11 +72,12 @@ class _Conv:
         if self.direct:
             self.flipped = np.ascontiguousarray(self.k[::-1, ::-1])
         else:
-            block = sfft.next_fast_len(max(TILE_FFT, 4 * s), real=True)
+            cols = w + 2 * s
+            if cols > TILE_WIDE:
+                cols = sfft.next_fast_len(max(TILE_WIDE // 2, TILE_S * s), real=True)
+                self.tx = cols - 2 * s
             if h + 2 * s > TILE_ABOVE:
-                self.ty = block - 2 * s
-            if w + 2 * s > TILE_ABOVE:
-                self.tx = block - 2 * s
+                self.ty = sfft.next_fast_len(max(TILE_ROWS, TILE_S * s), real=True) - 2 * s
             self.n0 = sfft.next_fast_len(self.ty + 2 * s, real=True)
             self.n1 = sfft.next_fast_len(self.tx + 2 * s, real=True)
             self.spec = _kernel_spectrum(self.k, self.n0, self.n1)

@@ -331,7 +331,8 @@ def test_tiled_fft_convolution_equals_the_whole_frame(monkeypatch):
               [opaque(img, ramp), Plane(fg, a, np.full((h, w), 0.8, np.float32) - ramp * 0.1)]]
     whole = [render_planes(p, 0.95, 24.0, Polygon(6)) for p in scenes]
     monkeypatch.setattr(R, "TILE_ABOVE", 40)
-    monkeypatch.setattr(R, "TILE_FFT", 40)
+    monkeypatch.setattr(R, "TILE_ROWS", 40)
+    monkeypatch.setattr(R, "TILE_WIDE", 60)
     conv = R._Conv(10.3, Disk(), h, w)
     assert conv.ty < h and conv.tx < w  # really tiled
     for p, ref in zip(scenes, whole):
