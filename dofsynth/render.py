@@ -6,7 +6,7 @@ radius `c = max_coc * (disparity - focus)` in pixels (see dofsynth.aperture), th
 planes are composited with "over". The backmost plane extends past the frame by edge
 replication; the others are zero outside it.
 
-Constant-disparity planes are convolved exactly (float32 FFT, overlap-add tiles for large
+Constant-disparity planes are convolved exactly (float32 FFT, overlap-save tiles for large
 ones; cv2 for tiny kernels), cropped to the plane's alpha bounding box plus the kernel radius,
 one channel at a time. Planes whose disparity varies use a normalized scatter: the signed CoC
 is split into levels `c_k` anchored at the smallest CoC and at most
@@ -43,7 +43,7 @@ def _kernel_spectrum(k: np.ndarray, n0: int, n1: int) -> np.ndarray:
     return sfft.fft(part, n=n0, axis=0)
 
 
-# Large FFT convolutions run as overlap-add over bands of rows: once the padded height exceeds
+# Large FFT convolutions run as overlap-save over bands of rows: once the padded height exceeds
 # TILE_ABOVE, bands with an FFT height of next_fast_len(max(TILE_ROWS, TILE_S * S)), each as wide
 # as the input up to TILE_WIDE padded columns (wider inputs are also cut into column tiles of
 # about TILE_WIDE / 2). The FFT's cost per pixel grows with its size (cache misses), least so
@@ -83,7 +83,7 @@ class _Conv:
             self.spec = _kernel_spectrum(self.k, self.n0, self.n1)
 
     def _block(self, x: np.ndarray) -> np.ndarray:
-        """Full convolution of one block of at most (ty, tx) pixels."""
+        """Full convolution of one block of at most (n0, n1) pixels (circular beyond that)."""
         s = self.s
         bh, bw = x.shape
         if self.direct:
@@ -98,15 +98,16 @@ class _Conv:
 
     def add_into(self, tile, dst: np.ndarray, oy: int, ox: int) -> None:
         """dst[oy + p, ox + q] += full[p, q] where it lies inside dst; the input comes from
-        `tile(y0, y1, x0, x1)` -> input[y0:y1, x0:x1] (overlap-add over tiles)."""
-        if self.s == 0:
-            _add_clipped(dst, oy, ox, tile(0, self.h, 0, self.w))
-            return
-        for y0 in range(0, self.h, self.ty):
-            y1 = min(y0 + self.ty, self.h)
-            for x0 in range(0, self.w, self.tx):
-                x1 = min(x0 + self.tx, self.w)
-                _add_clipped(dst, oy + y0, ox + x0, self._block(tile(y0, y1, x0, x1)))
+        `tile(y0, y1, x0, x1)` -> input[y0:y1, x0:x1]. Overlap-save: only the part of `full`
+        inside dst is computed, in output tiles of (ty, tx), each from the input reaching it."""
+        H, W = dst.shape
+        s2 = 2 * self.s
+        rows = _spans(max(-oy, 0), min(H - oy, self.h + s2), self.h, s2, self.ty)
+        cols = list(_spans(max(-ox, 0), min(W - ox, self.w + s2), self.w, s2, self.tx))
+        for p0, p1, i0, i1 in rows:
+            for q0, q1, j0, j1 in cols:
+                block = self._block(tile(i0, i1, j0, j1)) if s2 else tile(i0, i1, j0, j1)
+                dst[oy + p0 : oy + p1, ox + q0 : ox + q1] += block[p0 - i0 : p1 - i0, q0 - j0 : q1 - j0]
 
     def full(self, x: np.ndarray) -> np.ndarray:
         if self.s == 0:
@@ -178,6 +179,22 @@ def _grab(a: np.ndarray, y0: int, y1: int, x0: int, x1: int, edge: bool) -> np.n
     return out
 
 
+def _spans(lo: int, hi: int, n: int, s2: int, step: int):
+    """Overlap-save along one axis: output ranges [p0, p1) of a full convolution (length
+    n + s2, s2 = 2S) covering [lo, hi) in steps of `step`, each with the input range [i0, i1)
+    that reaches it (input i lands on outputs i .. i + s2). step >= n: one span, all input."""
+    if hi <= lo:
+        return
+    if step >= n:
+        yield lo, hi, 0, n
+        return
+    for p0 in range(lo, hi, step):
+        p1 = min(p0 + step, hi)
+        i0, i1 = max(p0 - s2, 0), min(p1, n)
+        if i1 > i0:
+            yield p0, p1, i0, i1
+
+
 def _add_clipped(dst: np.ndarray, y0: int, x0: int, block: np.ndarray) -> None:
     """dst[y0:, x0:] += block, for the part of the block that lies inside dst."""
     H, W = dst.shape
@@ -207,26 +224,18 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
                 return x if one else x * _grab(alpha, gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True)
             conv.add_into(tile, acc[ch], gy0 - s, gx0 - s)
         return
-    # output region of the blur in frame coordinates, clipped
+    # a cutout: acc *= 1 - blur(alpha), then acc += blur(colour * alpha), over the blur's
+    # footprint clipped to the frame (the blurs are added straight into acc, tile by tile)
     oy0, ox0 = max(gy0 - s, 0), max(gx0 - s, 0)
     oy1, ox1 = min(gy1 + s, H), min(gx1 + s, W)
-    a_src = _grab(alpha, gy0, gy1, gx0, gx1, backmost)
-    one = backmost and _is_one(alpha)
-
-    def blurred(x):
-        out = conv.full(np.ascontiguousarray(x, dtype=np.float32))
-        return out[oy0 - gy0 + s : oy1 - gy0 + s, ox0 - gx0 + s : ox1 - gx0 + s]
-
-    keep = None if one else 1.0 - blurred(a_src)
+    a_src = np.ascontiguousarray(alpha[gy0:gy1, gx0:gx1], dtype=np.float32)
+    keep = np.zeros((oy1 - oy0, ox1 - ox0), np.float32)
+    conv.add_into(lambda y0, y1, x0, x1: a_src[y0:y1, x0:x1], keep, gy0 - s - oy0, gx0 - s - ox0)
+    np.subtract(np.float32(1.0), keep, out=keep)
     for ch in range(3):
-        src = _grab(rgb[:, :, ch], gy0, gy1, gx0, gx1, backmost)
-        x = src if one else src * a_src
-        region = acc[ch, oy0:oy1, ox0:ox1]
-        if keep is None:  # opaque: "over" replaces what lies behind
-            region[...] = blurred(x)
-        else:
-            region *= keep
-            region += blurred(x)
+        acc[ch, oy0:oy1, ox0:ox1] *= keep
+        src = rgb[gy0:gy1, gx0:gx1, ch]
+        conv.add_into(lambda y0, y1, x0, x1: src[y0:y1, x0:x1] * a_src[y0:y1, x0:x1], acc[ch], gy0 - s, gx0 - s)
 
 
 def level_grid(cmin: float, cmax: float, level_step: float, level_ratio: float = 0.0) -> np.ndarray:
@@ -337,14 +346,14 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         elif along == 1:
             _add_clipped(w_acc, 0, tx0, np.convolve(wsub[0], conv.k.sum(axis=0))[None, :])
         else:
-            _add_clipped(w_acc, ty0, tx0, conv.full(wsub))
+            conv.add_into(lambda a, b, c, d: wsub[a:b, c:d], w_acc, ty0, tx0)
         a_sub = None if one else _grab(alpha, fy0, fy1, fx0, fx1, backmost)
-        wa = wsub if one else wsub * a_sub
+        wa = np.broadcast_to(wsub if one else wsub * a_sub, (y1 - y0, x1 - x0))
         if a_acc is not None:
-            _add_clipped(a_acc, ty0, tx0, conv.full(np.broadcast_to(wa, (y1 - y0, x1 - x0))))
+            conv.add_into(lambda a, b, c, d: wa[a:b, c:d], a_acc, ty0, tx0)
         strip = _grab(rgb, fy0, fy1, fx0, fx1, backmost)  # (h, w, 3), one copy at most
         for ch in range(3):
-            _add_clipped(col[ch], ty0, tx0, conv.full(strip[:, :, ch] * wa))
+            conv.add_into(lambda a, b, c, d: strip[a:b, c:d, ch] * wa[a:b, c:d], col[ch], ty0, tx0)
     np.maximum(w_acc, 1e-12, out=w_acc)
     inv = np.reciprocal(w_acc, out=w_acc)
     if backmost:

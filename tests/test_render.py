@@ -339,6 +339,37 @@ def test_tiled_fft_convolution_equals_the_whole_frame(monkeypatch):
         np.testing.assert_allclose(render_planes(p, 0.95, 24.0, Polygon(6)), ref, atol=2e-6)
 
 
+@pytest.mark.parametrize("tiles", [None, (30, 40)])
+@pytest.mark.parametrize("radius", [3.2, -9.6])  # cv2 direct and FFT
+def test_conv_add_into_matches_a_direct_full_convolution(monkeypatch, tiles, radius):
+    """_Conv.add_into (overlap-save over tiles, only the part inside dst computed) adds the full
+    convolution at any offset, clipped to dst: checked against a float64 direct convolution."""
+    from scipy.signal import convolve2d
+
+    import dofsynth.render as R
+    from dofsynth.aperture import kernel
+
+    if tiles is not None:
+        monkeypatch.setattr(R, "TILE_ABOVE", tiles[0])
+        monkeypatch.setattr(R, "TILE_ROWS", tiles[0])
+        monkeypatch.setattr(R, "TILE_WIDE", tiles[1])
+    g = rng(31)
+    h, w = 67, 83
+    x = g.random((h, w), dtype=np.float32)
+    conv = R._Conv(radius, Disk(), h, w)
+    if tiles is not None and not conv.direct:
+        assert conv.ty < h and conv.tx < w  # really tiled
+    full = convolve2d(x.astype(np.float64), kernel(Disk(), radius).astype(np.float64), mode="full")
+    for shape, oy, ox in [((h + 2 * conv.s, w + 2 * conv.s), 0, 0), ((50, 60), -7, 11), ((120, 40), 30, -25),
+                          ((20, 20), -200, 0)]:
+        base = g.random(shape, dtype=np.float32)
+        dst = base.copy()
+        conv.add_into(lambda y0, y1, x0, x1: x[y0:y1, x0:x1], dst, oy, ox)
+        want = base.astype(np.float64)
+        R._add_clipped(want, oy, ox, full)
+        np.testing.assert_allclose(dst, want, atol=2e-6)
+
+
 def test_non_finite_values_are_refused_wherever_they_are():
     """Validation reads each array's min and max once (no isfinite temporaries): a single NaN,
     inf or -inf anywhere, also in a disparity map or an alpha, is still refused."""
