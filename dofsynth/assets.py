@@ -422,6 +422,17 @@ class AssetLibrary:
         self._cache_size = cache_size
         self._cache_bytes = cache_bytes
 
+    def __getstate__(self) -> dict:
+        """Pickled (to spawn workers, Ray tasks) without the decoded-pixel cache, but with the
+        built-in assets it lists as drawn so far (uint8, 26 MB for all of them), which the
+        receiving process then adopts instead of drawing them again."""
+        keys = [a.path.split(":", 1)[1] for a in (*self.backgrounds, *self.foregrounds) if a.path.startswith("builtin:")]
+        return {**self.__dict__, "_cache": OrderedDict(), "_builtin_pixels": B.generated(keys)}
+
+    def __setstate__(self, state: dict) -> None:
+        B.adopt(state.pop("_builtin_pixels", {}))
+        self.__dict__.update(state)
+
     def __getitem__(self, asset_id: str) -> Asset:
         try:
             return self._by_id[asset_id]

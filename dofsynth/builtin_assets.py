@@ -109,9 +109,38 @@ def _checker_bg(rng: np.random.Generator, h: int = 512, w: int = 768) -> np.ndar
     return _u8(img * (0.85 + 0.15 * stripes[..., None]))
 
 
-@functools.lru_cache(maxsize=None)
+# Generated pixels by "bg/NAME" or "fg/NAME": drawn once per process, or adopted from the process
+# that pickled an AssetLibrary listing them (spawn workers, Ray tasks), which then need not draw
+# them again (dofsynth.assets.AssetLibrary.__getstate__).
+_PIXELS: dict[str, object] = {}
+
+
+def _memo(key: str, make):
+    got = _PIXELS.get(key)
+    if got is None:
+        got = _PIXELS[key] = make()
+    return got
+
+
+def generated(keys) -> dict:
+    """{key: pixels} of those of `keys` ("bg/NAME", "fg/NAME") drawn in this process so far."""
+    return {k: _PIXELS[k] for k in keys if k in _PIXELS}
+
+
+def adopt(pixels: dict) -> None:
+    """Take pixels from `generated` (of another process with this code) as this process's own."""
+    for key, value in pixels.items():
+        for a in value if isinstance(value, tuple) else (value,):
+            a.setflags(write=False)
+        _PIXELS.setdefault(key, value)
+
+
 def background_pixels(name: str) -> np.ndarray:
     """The built-in background `name` as uint8 sRGB (H, W, 3), read-only."""
+    return _memo(f"bg/{name}", lambda: _draw_background(name))
+
+
+def _draw_background(name: str) -> np.ndarray:
     if name in _SKIMAGE_COLOUR:
         img = _skimage(name)
     elif name in _SKIMAGE_GREY:
@@ -267,9 +296,12 @@ def _draw_foreground(kind: str, rng: np.random.Generator) -> np.ndarray:
     return m.result()
 
 
-@functools.lru_cache(maxsize=None)
 def foreground_pixels(name: str) -> tuple[np.ndarray, np.ndarray]:
     """The built-in foreground `name`: (uint8 sRGB (S, S, 3), uint8 alpha (S, S)), read-only."""
+    return _memo(f"fg/{name}", lambda: _draw_foreground_pixels(name))
+
+
+def _draw_foreground_pixels(name: str) -> tuple[np.ndarray, np.ndarray]:
     if name not in _FG_KINDS:
         raise KeyError(f"builtin:fg/{name}: no such built-in foreground (have {', '.join(FOREGROUND_NAMES)})")
     i = FOREGROUND_NAMES.index(name)

@@ -115,13 +115,13 @@ def tune_malloc() -> bool:
         return False
 
 
-def _init_worker(recipe, q) -> None:
+def _init_worker(recipe, q, library) -> None:
     import cv2
 
     tune_malloc()
     cv2.setNumThreads(1)  # one core per worker: no oversubscription
     _POOL["recipe"], _POOL["queue"] = recipe, q
-    _library_for(recipe)
+    _library_for(recipe, library)  # the parent's: asset folders scanned and hashed once
 
 
 def _worker_shard(out: str, task: ShardTask, limit: int | None) -> tuple[ShardInfo, float, float]:
@@ -173,7 +173,7 @@ class LocalExecutor(Executor):
         ctx = mp.get_context("spawn")
         q = ctx.Queue() if on_samples is not None else None
         ex = ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)), mp_context=ctx,
-                                 initializer=_init_worker, initargs=(recipe, q))
+                                 initializer=_init_worker, initargs=(recipe, q, _library_for(recipe)))
 
         def drain():
             while q is not None:
@@ -231,15 +231,18 @@ def _kill_hook(split: str, index: int):
     return hook
 
 
-def _ray_shard(recipe, out: str, split: str, index: int, limit: int | None) -> tuple[ShardInfo, float, float]:
+def _ray_shard(recipe, library, out: str, split: str, index: int, limit: int | None) -> tuple[ShardInfo, float, float]:
     """Ray task: (ShardInfo, seconds inside generate_shard, this worker's peak MiB so far).
-    Ray reuses worker processes, so the asset library is built once per worker."""
+    `library`: the driver's asset library (one object in Ray's store for all tasks), so no
+    worker scans and hashes the asset folders again; the paths in it must be the same on every
+    node (a shared file system), as the recipe's already are."""
     import cv2
 
     tune_malloc()  # a Ray worker process only runs such tasks
     cv2.setNumThreads(1)
     t0 = time.perf_counter()
-    info = generate_shard(recipe, out, split, index, limit=limit, on_sample=_kill_hook(split, index))
+    info = generate_shard(recipe, out, split, index, limit=limit, library=_library_for(recipe, library),
+                          on_sample=_kill_hook(split, index))
     return info, time.perf_counter() - t0, peak_rss_mb()
 
 
@@ -291,7 +294,7 @@ class RayExecutor(Executor):
 
         self.prepare()
         remote = ray.remote(num_cpus=1, max_retries=self.max_retries, retry_exceptions=False)(_ray_shard)
-        recipe_ref = ray.put(recipe)
+        recipe_ref, library_ref = ray.put(recipe), ray.put(_library_for(recipe))
         out = os.path.abspath(out)  # workers run elsewhere (another cwd, another node)
         window = self.max_in_flight or len(tasks) or 1
         todo, refs = list(tasks), {}
@@ -299,7 +302,7 @@ class RayExecutor(Executor):
             def submit():
                 while todo and len(refs) < window:
                     t = todo.pop(0)
-                    refs[remote.remote(recipe_ref, out, t.split, t.index, limits[t.split])] = t
+                    refs[remote.remote(recipe_ref, library_ref, out, t.split, t.index, limits[t.split])] = t
 
             submit()
             if on_submitted is not None:

@@ -113,14 +113,17 @@ def shard_task(recipe, split: str, shard_index: int, limit: int | None = None) -
 _WORKER: dict = {"sha": None, "library": None}
 
 
-def _library_for(recipe):
-    """The asset library of `recipe`, built once per process and reused for every shard."""
+def _library_for(recipe, library=None):
+    """The asset library of `recipe`, built once per process and reused for every shard.
+    `library`: one already built for this recipe, used unless this process has one (workers
+    get their parent's: the asset folders are scanned and hashed once, not once per worker)."""
     key = (recipe.sha256, getattr(recipe, "base_dir", ""))  # the same text elsewhere names other files
     if _WORKER["sha"] != key or _WORKER["library"] is None:
-        from dofsynth.assets import build_library
+        if library is None:
+            from dofsynth.assets import build_library
 
-        _WORKER["library"] = build_library(recipe)
-        _WORKER["sha"] = key
+            library = build_library(recipe)
+        _WORKER["library"], _WORKER["sha"] = library, key
     return _WORKER["library"]
 
 

@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 
 from dofsynth import builtin_assets as B
-from dofsynth.assets import (Asset, AssetError, assign_splits, build_library, builtin_assets,
+from dofsynth.assets import (Asset, AssetError, AssetLibrary, assign_splits, build_library, builtin_assets,
                              read_sources_licences)
 from dofsynth.cli import main as cli_main
 from dofsynth.commands.assets import scan_folder
@@ -18,7 +18,7 @@ from conftest import blob_alpha, noise_rgb, write_png
 
 
 # ------------------------------------------------------------------------------ built-in assets
-def test_builtin_assets_are_many_sorted_and_deterministic():
+def test_builtin_assets_are_many_sorted_and_deterministic(monkeypatch):
     bgs, fgs = builtin_assets("background"), builtin_assets("foreground")
     assert len(bgs) >= 12 and len(fgs) >= 12
     assert [a.id for a in bgs] == sorted(a.id for a in bgs)
@@ -26,12 +26,30 @@ def test_builtin_assets_are_many_sorted_and_deterministic():
     assert all(a.id.startswith("builtin:fg/") and a.kind == "foreground" for a in fgs)
     assert len({a.sha256 for a in (*bgs, *fgs)}) == len(bgs) + len(fgs)
     # regenerate from scratch: same pixels, same hashes
-    B.foreground_pixels.cache_clear()
-    B.background_pixels.cache_clear()
+    monkeypatch.setattr(B, "_PIXELS", {})
     for a in fgs:
         rgb, alpha = B.foreground_pixels(a.id.split("/", 1)[1])
         assert B.pixels_sha256(rgb, alpha) == a.sha256
     assert B.pixels_sha256(B.background_pixels("noise")) == next(a for a in bgs if a.id.endswith("/noise")).sha256
+
+
+def test_a_pickled_library_carries_its_drawn_builtin_assets(monkeypatch):
+    """Spawn workers and Ray tasks get the parent's library: it carries the built-in pixels
+    drawn so far (not the decoded-asset cache), and the receiver adopts them, read-only."""
+    import pickle
+
+    lib = AssetLibrary(list(builtin_assets("background")), list(builtin_assets("foreground")), {})
+    noise = lib["builtin:bg/noise"]
+    lib.load_background(noise)  # fills the decoded cache, which must not travel
+    blob = pickle.dumps(lib)
+    monkeypatch.setattr(B, "_PIXELS", {})  # the receiving process: nothing drawn yet
+    got = pickle.loads(blob)
+    assert len(got._cache) == 0 and [a.id for a in got.backgrounds] == [a.id for a in lib.backgrounds]
+    assert set(B._PIXELS) == {a.path.split(":", 1)[1] for a in (*lib.backgrounds, *lib.foregrounds)}
+    px = B._PIXELS["bg/noise"]
+    assert not px.flags.writeable and B.pixels_sha256(px) == noise.sha256
+    assert B.background_pixels("noise") is px  # adopted, not drawn again
+    np.testing.assert_array_equal(got.load_background(noise), lib.load_background(noise))
 
 
 def _mattes() -> dict[str, np.ndarray]:

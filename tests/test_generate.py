@@ -81,6 +81,18 @@ def test_two_workers_give_identical_bytes(recipe, reference, tmp_path):
     assert _files(out) == _files(reference[0])
 
 
+def test_a_process_takes_a_given_library_once_and_keeps_its_own(recipe, monkeypatch):
+    """Workers get their parent's library (`_library_for(recipe, library)`): used when the
+    process has none for this recipe, never replacing the one it has (and its cache)."""
+    import dofsynth.generate as G
+
+    monkeypatch.setattr(G, "_WORKER", {"sha": None, "library": None})
+    monkeypatch.setattr("dofsynth.assets.build_library", lambda r: pytest.fail("built again"))
+    given, other = object(), object()
+    assert _library_for(recipe, given) is given
+    assert _library_for(recipe) is given and _library_for(recipe, other) is given
+
+
 def test_sample_alone_equals_sample_in_batch(recipe, reference, tmp_path):
     out = reference[0]
     library = _library_for(recipe)
