@@ -1,26 +1,28 @@
 """Benchmark `dofsynth generate` at large sizes: time per sample, peak memory per worker, and the
 speed-up from 1 to 2 local workers, all in one run.
 
-    .venv/bin/python benchmarks/generate.py                       # 1024, 2048, 4096 px: a few minutes
-    .venv/bin/python benchmarks/generate.py --sizes 1024 --samples 4
+    .venv/bin/python benchmarks/generate.py                       # 1024, 2048, 4096 px: about 3 minutes
+    .venv/bin/python benchmarks/generate.py --sizes 1024 --samples 4 --scaling 0:0
     .venv/bin/python benchmarks/generate.py --sizes 4096 --breakdown   # where a 4096 px sample's memory goes
     .venv/bin/python benchmarks/generate.py --sizes 512 1024 --floor   # plus the I/O floor
 
 The recipe is recipes/deeplens-18k.toml (1 target per scene, max CoC 32 px at 1024 px) with the
-built-in assets, its size set to each --sizes value and max CoC scaled with it, one sample per
-shard (so both workers of a 2-worker run have work). Every run uses fresh spawn worker
-processes (also for 1 worker), so a worker's peak memory belongs to that size alone.
-Columns:
+built-in assets, its size set to each --sizes value and max CoC scaled with it, the same
+--samples samples at every size, one sample per shard (so both workers of a 2-worker run have
+work). Every run uses fresh spawn worker processes (also for 1 worker), so a worker's peak
+memory belongs to that size alone. Columns:
 - `s/sample`: time inside `generate_shard` per sample with 1 worker (scene, layers, render,
   encode, write): the steady-state cost per core; `x1024`: its ratio to the first size, beside
   `px ratio`, the ratio of pixel counts (target: time grows no faster than the pixels).
 - `peak MiB/worker`: largest `ru_maxrss` measured inside a worker (1- and 2-worker runs), against
   the 1.5 GB (1536 MiB) target.
+- `w=2 steady`: (s/sample per worker at w=1) / (s/sample per worker at w=2) * 2, the speed-up of
+  2 workers without starting them (a few samples are too few to judge it end to end).
+- `--scaling SIZE:SAMPLES` (default 1024:96): the 1 -> 2 worker speed-up end to end, over a run
+  long enough that starting the workers (importing, building the asset library: about 1.3 s)
+  weighs little, as in a real job; it also prints that start-up (and the tail of the run).
 - `--malloc default`: the workers keep glibc's own malloc settings (before/after comparisons of
   `dofsynth.executors.tune_malloc`).
-- `w=1`, `w=2 samples/s`: end-to-end `generate` throughput (includes starting the workers and
-  building the asset library in each, about 2-3 s); `speed-up` = w2 / w1 throughput, and
-  `speed-up (steady)` = (s/sample/worker at w=1) / (s/sample/worker at w=2) * 2.
 - `--floor`: the I/O floor, encoding the same decoded arrays to PNG/EXR/JSON and writing a tar.
 - `--breakdown`: renders one sample of each size in this process, step by step as
   `dofsynth.record.render_sample` does, and prints per step the NumPy memory it holds and its
@@ -147,6 +149,20 @@ def breakdown(recipe) -> None:
     tracemalloc.stop()
 
 
+def run(recipe, out: Path, workers: int):
+    """`generate` with `workers` fresh spawn workers (also for 1: peak memory per size)."""
+    return generate(recipe, out, executor=LocalExecutor(workers, in_process=False), progress=False)
+
+
+def _size_samples(text: str) -> tuple[int, int] | None:
+    size, _, n = text.partition(":")
+    try:
+        size, n = int(size), int(n)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"want SIZE:SAMPLES, e.g. 1024:96, got {text!r}") from None
+    return (size, n) if size > 0 and n > 0 else None
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--recipe", type=Path, default=ROOT / "recipes" / "deeplens-18k.toml")
@@ -158,6 +174,9 @@ def main(argv=None) -> int:
     ap.add_argument("--malloc", default=None, metavar="SETTING",
                     help="the workers' glibc malloc setting (DOFSYNTH_WORKER_MALLOC): 'default' = glibc's own, "
                          "'MMAP_MIB,TRIM_MIB'; unset = dofsynth.executors' worker settings")
+    ap.add_argument("--scaling", type=_size_samples, default=(1024, 96), metavar="SIZE:SAMPLES",
+                    help="the 1 -> 2 worker run: SAMPLES samples at SIZE px (default 1024:96, about 40 s: long "
+                         "enough that starting the workers weighs little); 0:0 skips it")
     args = ap.parse_args(argv)
     if args.malloc is not None:
         os.environ[MALLOC_ENV] = args.malloc  # spawn workers inherit it
@@ -166,31 +185,38 @@ def main(argv=None) -> int:
     base = args.recipe.read_text(encoding="utf-8")
     print(f"cores: {os.cpu_count()}, load average: {' '.join(f'{x:.1f}' for x in os.getloadavg())}, "
           f"worker malloc: {setting}")
-    print(f"{'size':>5} {'n':>3} {'s/sample':>9} {'x1024':>6} {'px ratio':>8} {'peak MiB/worker':>16} "
-          f"{'w=1 samples/s':>14} {'w=2 samples/s':>14} {'speed-up':>9} {'(steady)':>9}"
-          + (f" {'floor s':>8}" if args.floor else ""), flush=True)
+    print(f"{'size':>5} {'n':>3} {'s/sample':>9} {'x' + str(args.sizes[0]):>6} {'px ratio':>8} "
+          f"{'peak MiB/worker':>16} {'w=2 steady':>11}" + (f" {'floor s':>8}" if args.floor else ""), flush=True)
     first = None
     for size in args.sizes:
         n = args.samples
         recipe = bench_recipe(base, size, n)
-        runs = {}
         with tempfile.TemporaryDirectory() as tmp:
-            for w in (1, 2):
-                runs[w] = generate(recipe, Path(tmp) / f"w{w}", executor=LocalExecutor(w, in_process=False),
-                                   progress=False)
+            runs = {w: run(recipe, Path(tmp) / f"w{w}", w) for w in (1, 2)}
             floor = io_floor(recipe, min(n, 2), Path(tmp)) if args.floor else None
         per = runs[1].seconds_per_sample_per_worker
         first = first or (size, per)
         t_ratio, px_ratio = per / first[1], (size / first[0]) ** 2
         peak = max(r.peak_rss_mb for r in runs.values())
         flag = "" if peak <= TARGET_MIB else " !"
-        speed = runs[2].samples_per_second / runs[1].samples_per_second
         steady = 2 * per / runs[2].seconds_per_sample_per_worker
-        print(f"{size:>5} {n:>3} {per:>9.3f} {t_ratio:>6.2f} {px_ratio:>8.2f} {peak:>14.0f}{flag:2s} "
-              f"{runs[1].samples_per_second:>14.3f} {runs[2].samples_per_second:>14.3f} {speed:>9.2f} {steady:>9.2f}"
+        print(f"{size:>5} {n:>3} {per:>9.3f} {t_ratio:>6.2f} {px_ratio:>8.2f} {peak:>14.0f}{flag:2s} {steady:>11.2f}"
               + (f" {floor:>8.3f}" if floor is not None else ""), flush=True)
-    print(f"(target: peak <= {TARGET_MIB} MiB per worker; '!' marks a size over it. x1024 <= px ratio: "
-          "time grows no faster than the pixel count)")
+    print(f"(s/sample: time inside generate_shard, 1 worker; target x{args.sizes[0]} <= px ratio, time growing no "
+          f"faster than the pixel count. Peak target <= {TARGET_MIB} MiB per worker; '!' marks a size over it.)")
+    if args.scaling:
+        size, n = args.scaling
+        recipe = bench_recipe(base, size, n, shard_size=4)
+        with tempfile.TemporaryDirectory() as tmp:
+            runs = {w: run(recipe, Path(tmp) / f"w{w}", w) for w in (1, 2)}
+        speed = runs[2].samples_per_second / runs[1].samples_per_second
+        steady = 2 * runs[1].seconds_per_sample_per_worker / runs[2].seconds_per_sample_per_worker
+        start = " ".join(f"w={w} {r.seconds - r.shard_seconds / w:.1f} s" for w, r in runs.items())
+        print(f"\n1 -> 2 local workers, {n} samples at {size} px (shards of 4), end to end: "
+              f"w=1 {runs[1].samples_per_second:.2f} samples/s ({runs[1].seconds:.1f} s), "
+              f"w=2 {runs[2].samples_per_second:.2f} samples/s ({runs[2].seconds:.1f} s): speed-up {speed:.2f} "
+              f"(target >= 1.8); steady {steady:.2f}. Start-up and tail (wall - shard time / workers): {start}.",
+              flush=True)
     if args.breakdown:
         for size in args.sizes:
             breakdown(bench_recipe(base, size, 1))

@@ -5,8 +5,8 @@ submits one call of the pure `generate_shard` per `ShardTask` and yields a `Shar
 finished shard, in any order. Everything else (the plan, the lock, the progress file and bar,
 resume, the manifest and the summary) stays in `dofsynth.generate`, the same for every executor.
 
-- `LocalExecutor(workers)`: in this process (workers=1) or a `spawn` process pool, each worker
-  building the asset library once; progress is reported per sample.
+- `LocalExecutor(workers)`: in this process (workers=1) or a `spawn` process pool whose workers
+  take this process's asset library (built once per run); progress is reported per sample.
 - `RayExecutor(address, max_retries, max_in_flight)`: one Ray task per shard on a local or
   remote Ray cluster (`pip install 'dofsynth[ray]'`); a task whose worker dies (killed, out of
   memory, node lost) is retried up to `max_retries` times, the retry rewriting the shard from
