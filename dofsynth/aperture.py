@@ -166,15 +166,30 @@ def coverage(aperture: Aperture, radius: float) -> np.ndarray:
     # Sub-columns clipped to the shape's x-extent, each sampled at its clipped midpoint: exact
     # for straight edges between kinks (vertical edges included) and continuous in r.
     xmin, xmax = aperture.x_extent(r)
-    cells = np.arange(n * X_SUBSAMPLES + 1) / X_SUBSAMPLES - s - 0.5
-    cells = np.clip(cells, xmin, xmax)
+    cells = np.clip(np.arange(n * X_SUBSAMPLES + 1) / X_SUBSAMPLES - s - 0.5, xmin, xmax)
     width = np.diff(cells)
     lo, hi = aperture.chord(0.5 * (cells[1:] + cells[:-1]), r)
-    edges = np.arange(n) - s - 0.5
-    top = np.minimum(hi[None, :], edges[:, None] + 1.0)
-    bot = np.maximum(lo[None, :], edges[:, None])
-    seg = np.maximum(top - bot, 0.0) * width  # (rows, x sub-columns)
-    return seg.reshape(n, n, X_SUBSAMPLES).sum(axis=2)
+    on = width > 0  # sub-columns outside the shape: no chord (and no inf * 0)
+    lo = np.where(on, lo, 0.0)
+    hi = np.where(on, np.maximum(hi, lo), 0.0)
+    # The chord [lo, hi] below pixel edge y_i has length clip(y_i, lo, hi) - lo, so pixel row i
+    # gets H(y_{i+1}) - H(y_i), H(y) = sum over the column's sub-columns of width * clip(y, lo, hi)
+    # = width * (lo + [lo < y] (y - lo) - [hi < y] (y - hi)). The sums over "v < y_i" come from one
+    # bincount per column and a cumulative sum over the edges: O(n * X_SUBSAMPLES + n^2) work.
+    column = np.repeat(np.arange(n), X_SUBSAMPLES)
+    edges = np.arange(n + 1) - s - 0.5
+
+    def below(v):  # per (column, edge i): sum of width and of width * v over sub-columns with v < y_i
+        first = np.clip(np.floor(v + s + 0.5).astype(np.int64) + 1, 0, n + 1)  # first edge above v
+        at = column * (n + 2) + first
+        w_sum = np.bincount(at, width, n * (n + 2)).reshape(n, n + 2).cumsum(axis=1)[:, : n + 1]
+        wv_sum = np.bincount(at, width * v, n * (n + 2)).reshape(n, n + 2).cumsum(axis=1)[:, : n + 1]
+        return w_sum, wv_sum
+
+    w_lo, wv_lo = below(lo)
+    w_hi, wv_hi = below(hi)
+    h = edges[None, :] * (w_lo - w_hi) - wv_lo + wv_hi  # H(y_i) less the constant sum of width * lo
+    return np.diff(h, axis=1).T
 
 
 @lru_cache(maxsize=512)
