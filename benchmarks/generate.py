@@ -1,7 +1,7 @@
 """Benchmark `dofsynth generate` at large sizes: time per sample, peak memory per worker, and the
 speed-up from 1 to 2 local workers, all in one run.
 
-    .venv/bin/python benchmarks/generate.py                       # 1024, 2048, 4096 px: about 3 minutes
+    .venv/bin/python benchmarks/generate.py                       # 1024, 2048, 4096 px: about 4 minutes
     .venv/bin/python benchmarks/generate.py --sizes 1024 --samples 4 --scaling 0:0
     .venv/bin/python benchmarks/generate.py --sizes 4096 --breakdown   # where a 4096 px sample's memory goes
     .venv/bin/python benchmarks/generate.py --sizes 512 1024 --floor   # plus the I/O floor
@@ -12,7 +12,8 @@ built-in assets, its size set to each --sizes value and max CoC scaled with it, 
 work). Every run uses fresh spawn worker processes (also for 1 worker), so a worker's peak
 memory belongs to that size alone. Columns:
 - `s/sample`: time inside `generate_shard` per sample with 1 worker (scene, layers, render,
-  encode, write): the steady-state cost per core; `x1024`: its ratio to the first size, beside
+  encode, write): the steady-state cost per core, the median of --repeat runs (the sizes
+  interleaved; `runs` gives their range); `x1024`: its ratio to the first size, beside
   `px ratio`, the ratio of pixel counts (target: time grows no faster than the pixels).
 - `peak MiB/worker`: largest `ru_maxrss` measured inside a worker (1- and 2-worker runs), against
   the 1.5 GB (1536 MiB) target.
@@ -35,6 +36,7 @@ import argparse
 import os
 import re
 import resource
+import statistics
 import sys
 import tempfile
 import time
@@ -169,6 +171,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048, 4096])
     ap.add_argument("--samples", type=int, default=4,
                     help="samples per run, the same ones at every size (default 4; even, so 2 workers share them)")
+    ap.add_argument("--repeat", type=int, default=3,
+                    help="1-worker runs per size, the sizes interleaved; s/sample is their median (default 3)")
     ap.add_argument("--floor", action="store_true", help="also measure the I/O floor (in this process)")
     ap.add_argument("--breakdown", action="store_true", help="also trace one sample's memory step by step")
     ap.add_argument("--malloc", default=None, metavar="SETTING",
@@ -185,34 +189,42 @@ def main(argv=None) -> int:
     base = args.recipe.read_text(encoding="utf-8")
     print(f"cores: {os.cpu_count()}, load average: {' '.join(f'{x:.1f}' for x in os.getloadavg())}, "
           f"worker malloc: {setting}")
-    print(f"{'size':>5} {'n':>3} {'s/sample':>9} {'x' + str(args.sizes[0]):>6} {'px ratio':>8} "
+    recipes = {size: bench_recipe(base, size, args.samples) for size in args.sizes}
+    per: dict[int, list[float]] = {size: [] for size in args.sizes}
+    peak: dict[int, float] = {size: 0.0 for size in args.sizes}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(args.repeat):  # sizes interleaved: a slow spell of the machine hits them all
+            for size in args.sizes:
+                res = run(recipes[size], Path(tmp) / f"w1-{size}-{r}", 1)
+                per[size].append(res.seconds_per_sample_per_worker)
+                peak[size] = max(peak[size], res.peak_rss_mb)
+    print(f"{'size':>5} {'n':>3} {'s/sample':>9} {'runs':>17} {'x' + str(args.sizes[0]):>6} {'px ratio':>8} "
           f"{'peak MiB/worker':>16} {'w=2 steady':>11}" + (f" {'floor s':>8}" if args.floor else ""), flush=True)
-    first = None
+    first = args.sizes[0]
     for size in args.sizes:
-        n = args.samples
-        recipe = bench_recipe(base, size, n)
+        recipe = recipes[size]
         with tempfile.TemporaryDirectory() as tmp:
-            runs = {w: run(recipe, Path(tmp) / f"w{w}", w) for w in (1, 2)}
-            floor = io_floor(recipe, min(n, 2), Path(tmp)) if args.floor else None
-        per = runs[1].seconds_per_sample_per_worker
-        first = first or (size, per)
-        t_ratio, px_ratio = per / first[1], (size / first[0]) ** 2
-        peak = max(r.peak_rss_mb for r in runs.values())
-        flag = "" if peak <= TARGET_MIB else " !"
-        steady = 2 * per / runs[2].seconds_per_sample_per_worker
-        print(f"{size:>5} {n:>3} {per:>9.3f} {t_ratio:>6.2f} {px_ratio:>8.2f} {peak:>14.0f}{flag:2s} {steady:>11.2f}"
-              + (f" {floor:>8.3f}" if floor is not None else ""), flush=True)
-    print(f"(s/sample: time inside generate_shard, 1 worker; target x{args.sizes[0]} <= px ratio, time growing no "
+            w2 = run(recipe, Path(tmp) / "w2", 2)
+            floor = io_floor(recipe, min(args.samples, 2), Path(tmp)) if args.floor else None
+        med = statistics.median(per[size])
+        t_ratio, px_ratio = med / statistics.median(per[first]), (size / first) ** 2
+        top = max(peak[size], w2.peak_rss_mb)
+        flag = "" if top <= TARGET_MIB else " !"
+        steady = 2 * med / w2.seconds_per_sample_per_worker
+        spread = f"{min(per[size]):.3f}-{max(per[size]):.3f}"
+        print(f"{size:>5} {args.samples:>3} {med:>9.3f} {spread:>17} {t_ratio:>6.2f} {px_ratio:>8.2f} {top:>14.0f}{flag:2s} "
+              f"{steady:>11.2f}" + (f" {floor:>8.3f}" if floor is not None else ""), flush=True)
+    print(f"(s/sample: median over --repeat 1-worker runs of the time inside generate_shard; target x{args.sizes[0]} <= px ratio, time growing no "
           f"faster than the pixel count. Peak target <= {TARGET_MIB} MiB per worker; '!' marks a size over it.)")
     if args.scaling:
         size, n = args.scaling
-        recipe = bench_recipe(base, size, n, shard_size=4)
+        recipe = bench_recipe(base, size, n, shard_size=2)
         with tempfile.TemporaryDirectory() as tmp:
             runs = {w: run(recipe, Path(tmp) / f"w{w}", w) for w in (1, 2)}
         speed = runs[2].samples_per_second / runs[1].samples_per_second
         steady = 2 * runs[1].seconds_per_sample_per_worker / runs[2].seconds_per_sample_per_worker
         start = " ".join(f"w={w} {r.seconds - r.shard_seconds / w:.1f} s" for w, r in runs.items())
-        print(f"\n1 -> 2 local workers, {n} samples at {size} px (shards of 4), end to end: "
+        print(f"\n1 -> 2 local workers, {n} samples at {size} px (shards of 2), end to end: "
               f"w=1 {runs[1].samples_per_second:.2f} samples/s ({runs[1].seconds:.1f} s), "
               f"w=2 {runs[2].samples_per_second:.2f} samples/s ({runs[2].seconds:.1f} s): speed-up {speed:.2f} "
               f"(target >= 1.8); steady {steady:.2f}. Start-up and tail (wall - shard time / workers): {start}.",
