@@ -19,9 +19,10 @@ memory belongs to that size alone. Columns:
   the 1.5 GB (1536 MiB) target.
 - `w=2 steady`: (s/sample per worker at w=1) / (s/sample per worker at w=2) * 2, the speed-up of
   2 workers without starting them (a few samples are too few to judge it end to end).
-- `--scaling SIZE:SAMPLES` (default 1024:96): the 1 -> 2 worker speed-up end to end, over a run
-  long enough that starting the workers (importing, building the asset library: about 1.3 s)
-  weighs little, as in a real job; it also prints that start-up (and the tail of the run).
+- `--scaling SIZE:SAMPLES` (default 1024:96, shards of 2): the 1 -> 2 worker speed-up end to
+  end, over a run long enough that starting the workers (spawning, importing, taking this
+  process's asset library: 0.5-0.9 s here) weighs little, as in a real job; it also prints that
+  start-up (and the idle tail of the run).
 - `--malloc default`: the workers keep glibc's own malloc settings (before/after comparisons of
   `dofsynth.executors.tune_malloc`).
 - `--floor`: the I/O floor, encoding the same decoded arrays to PNG/EXR/JSON and writing a tar.
@@ -179,7 +180,7 @@ def main(argv=None) -> int:
                     help="the workers' glibc malloc setting (DOFSYNTH_WORKER_MALLOC): 'default' = glibc's own, "
                          "'MMAP_MIB,TRIM_MIB'; unset = dofsynth.executors' worker settings")
     ap.add_argument("--scaling", type=_size_samples, default=(1024, 96), metavar="SIZE:SAMPLES",
-                    help="the 1 -> 2 worker run: SAMPLES samples at SIZE px (default 1024:96, about 40 s: long "
+                    help="the 1 -> 2 worker run: SAMPLES samples at SIZE px (default 1024:96, about 35 s: long "
                          "enough that starting the workers weighs little); 0:0 skips it")
     args = ap.parse_args(argv)
     if args.malloc is not None:
