@@ -5,11 +5,16 @@ Fixtures that write files do so under pytest's tmp_path.
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+
+# `dofsynth generate --workers 1` tunes malloc for the process it runs in (executors.tune_malloc):
+# not for the test processes, which call the CLI in-process and live on (nor their workers).
+os.environ.setdefault("DOFSYNTH_WORKER_MALLOC", "default")
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_ASSETS = Path(__file__).resolve().parents[2] / "shared" / "assets"

@@ -90,7 +90,7 @@ def print_plan(recipe, splits, limit) -> None:
 
 def run(args) -> int:
     from dofsynth.config import load_recipe
-    from dofsynth.executors import make_executor
+    from dofsynth.executors import make_executor, tune_malloc
     from dofsynth.generate import SPLITS, generate, parse_shard_range
     from dofsynth.manifest import save_summary
 
@@ -110,6 +110,8 @@ def run(args) -> int:
     if not args.out:
         raise ValueError("--out OUT is required (the data set folder)")
     executor = make_executor(args.executor, workers=args.workers, address=args.address, max_retries=args.max_retries)
+    if args.executor != "ray" and args.workers == 1:
+        tune_malloc()  # the shards render in this process, whose one job this is (as in a worker)
     result = generate(recipe, args.out, splits=splits, limit=args.limit, resume=args.resume,
                       progress=not args.quiet, executor=executor, shard_range=shard_range)
     if args.save_summary is not None:
