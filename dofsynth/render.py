@@ -72,10 +72,8 @@ class _Conv:
         if self.direct:
             self.flipped = np.ascontiguousarray(self.k[::-1, ::-1])
         else:
-            cols = w + 2 * s
-            if cols > TILE_WIDE:
-                cols = sfft.next_fast_len(max(TILE_WIDE // 2, TILE_S * s), real=True)
-                self.tx = cols - 2 * s
+            if w + 2 * s > TILE_WIDE:
+                self.tx = sfft.next_fast_len(max(TILE_WIDE // 2, TILE_S * s), real=True) - 2 * s
             if h + 2 * s > TILE_ABOVE:
                 self.ty = sfft.next_fast_len(max(TILE_ROWS, TILE_S * s), real=True) - 2 * s
             self.n0 = sfft.next_fast_len(self.ty + 2 * s, real=True)

@@ -316,7 +316,7 @@ def test_transparent_plane_changes_nothing():
 
 
 def test_tiled_fft_convolution_equals_the_whole_frame(monkeypatch):
-    """Large convolutions run as overlap-add over FFT tiles: the same result as one FFT."""
+    """Large convolutions run as overlap-save over FFT tiles: the same result as one FFT."""
     import dofsynth.render as R
 
     g = rng(13)
