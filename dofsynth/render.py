@@ -57,11 +57,12 @@ TILE_S = 4
 class _Conv:
     """Linear convolution of (h, w) float32 channels with one kernel, sharing its spectrum.
 
-    `full(x)` returns the (h + 2S, w + 2S) full convolution: input pixel (i, j) spreads over
-    output rows i .. i + 2S and columns j .. j + 2S (output (i + S, j + S) is its centre), so
-    the input needs no zero margin. `add_into` adds it to a destination tile by tile. Small
-    kernels use cv2.filter2D, large ones float32 FFTs (next_fast_len sizes; one channel, and
-    for large inputs one tile, at a time)."""
+    The full convolution is (h + 2S, w + 2S): input pixel (i, j) spreads over output rows
+    i .. i + 2S and columns j .. j + 2S (output (i + S, j + S) is its centre), so the input needs
+    no zero margin. `add_into` adds the part of it that lands in a destination. Small kernels
+    use cv2.filter2D, large ones float32 FFTs (next_fast_len sizes, one channel and one tile at a
+    time) taken axis by axis: the real transform along rows runs only over the input rows that
+    hold data (once, even where bands overlap) and its inverse only over the rows kept."""
 
     def __init__(self, signed_radius: float, aperture: Aperture, h: int, w: int):
         self.s = s = support_radius(signed_radius)
@@ -80,19 +81,14 @@ class _Conv:
             self.n1 = sfft.next_fast_len(self.tx + 2 * s, real=True)
             self.spec = _kernel_spectrum(self.k, self.n0, self.n1)
 
-    def _block(self, x: np.ndarray) -> np.ndarray:
-        """Full convolution of one block of at most (n0, n1) pixels (circular beyond that)."""
+    def _direct(self, x: np.ndarray) -> np.ndarray:
+        """Full convolution of one block by cv2.filter2D (small kernels)."""
         s = self.s
         bh, bw = x.shape
-        if self.direct:
-            pad = cv2.copyMakeBorder(np.ascontiguousarray(x, dtype=np.float32), 2 * s, 2 * s, 2 * s, 2 * s,
-                                     cv2.BORDER_CONSTANT, value=0)
-            out = cv2.filter2D(pad, -1, self.flipped, anchor=(s, s), borderType=cv2.BORDER_CONSTANT)
-            return out[s : s + bh + 2 * s, s : s + bw + 2 * s]
-        spec = sfft.rfft2(x, s=(self.n0, self.n1))
-        spec *= self.spec
-        out = sfft.irfft2(spec, s=(self.n0, self.n1), overwrite_x=True)
-        return out[: bh + 2 * s, : bw + 2 * s]
+        pad = cv2.copyMakeBorder(np.ascontiguousarray(x, dtype=np.float32), 2 * s, 2 * s, 2 * s, 2 * s,
+                                 cv2.BORDER_CONSTANT, value=0)
+        out = cv2.filter2D(pad, -1, self.flipped, anchor=(s, s), borderType=cv2.BORDER_CONSTANT)
+        return out[s : s + bh + 2 * s, s : s + bw + 2 * s]
 
     def add_into(self, tile, dst: np.ndarray, oy: int, ox: int) -> None:
         """dst[oy + p, ox + q] += full[p, q] where it lies inside dst; the input comes from
@@ -100,21 +96,40 @@ class _Conv:
         inside dst is computed, in output tiles of (ty, tx), each from the input reaching it."""
         H, W = dst.shape
         s2 = 2 * self.s
-        rows = _spans(max(-oy, 0), min(H - oy, self.h + s2), self.h, s2, self.ty)
-        cols = list(_spans(max(-ox, 0), min(W - ox, self.w + s2), self.w, s2, self.tx))
-        for p0, p1, i0, i1 in rows:
-            for q0, q1, j0, j1 in cols:
-                block = self._block(tile(i0, i1, j0, j1)) if s2 else tile(i0, i1, j0, j1)
+        rows = list(_spans(max(-oy, 0), min(H - oy, self.h + s2), self.h, s2, self.ty))
+        for q0, q1, j0, j1 in _spans(max(-ox, 0), min(W - ox, self.w + s2), self.w, s2, self.tx):
+            if not self.direct:
+                self._add_bands(tile, dst, oy, ox + q0, rows, q1 - q0, q0 - j0, j0, j1)
+                continue
+            for p0, p1, i0, i1 in rows:
+                block = self._direct(tile(i0, i1, j0, j1)) if s2 else tile(i0, i1, j0, j1)
                 dst[oy + p0 : oy + p1, ox + q0 : ox + q1] += block[p0 - i0 : p1 - i0, q0 - j0 : q1 - j0]
 
-    def full(self, x: np.ndarray) -> np.ndarray:
-        if self.s == 0:
-            return x
-        if self.ty == self.h and self.tx == self.w:
-            return self._block(x)
-        out = np.zeros((self.h + 2 * self.s, self.w + 2 * self.s), np.float32)
-        self.add_into(lambda y0, y1, x0, x1: x[y0:y1, x0:x1], out, 0, 0)
-        return out
+    def _add_bands(self, tile, dst, oy, ox, rows, width, skip, j0, j1) -> None:
+        """One column tile by FFT: for each band (p0, p1, i0, i1) of `rows`, output rows p0 .. p1
+        (columns skip .. skip + width of the block) from input rows i0 .. i1, columns j0 .. j1.
+        Rows first: each input row's real transform is taken once (bands share 2S rows), and
+        the inverse one only for the rows kept."""
+        n0, n1, s2 = self.n0, self.n1, 2 * self.s
+        real = np.zeros((n0, n1), np.float32)  # a band's new input rows, zero-padded to n1
+        half = np.empty((n0, n1 // 2 + 1), np.complex64)  # the band's row spectra, zero-padded to n0
+        shared, shared0 = half[:0], 0  # row spectra the next band reuses, from input row shared0
+        for p0, p1, i0, i1 in rows:
+            lo = max(i0, shared0 + shared.shape[0])  # rows before lo were transformed already
+            if lo > i0:
+                half[: lo - i0] = shared[i0 - shared0 :]
+            if i1 > lo:
+                real[: i1 - lo, : j1 - j0] = tile(lo, i1, j0, j1)
+                real[: i1 - lo, j1 - j0 :] = 0.0
+                half[lo - i0 : i1 - i0] = sfft.rfft(real[: i1 - lo], axis=1)
+            half[i1 - i0 :] = 0.0
+            shared0 = max(i0, p1 - s2)  # the next band's input starts at its p0 - 2S = p1 - 2S
+            shared = half[shared0 - i0 : i1 - i0].copy()
+            spec = sfft.fft(half, axis=0, overwrite_x=True)
+            spec *= self.spec
+            spec = sfft.ifft(spec, axis=0, overwrite_x=True)
+            out = sfft.irfft(spec[p0 - i0 : p1 - i0], n=n1, axis=1)
+            dst[oy + p0 : oy + p1, ox : ox + width] += out[:, skip : skip + width]
 
 
 def convolve(x: np.ndarray, signed_radius: float, aperture: Aperture) -> np.ndarray:
@@ -124,11 +139,12 @@ def convolve(x: np.ndarray, signed_radius: float, aperture: Aperture) -> np.ndar
     correct only if x holds zeros (or the wanted extension) in that margin: the caller pads.
     """
     s = support_radius(signed_radius)
-    if s == 0:
-        return x.copy()
     c, h, w = x.shape
     conv = _Conv(signed_radius, aperture, h, w)
-    return np.stack([conv.full(x[i])[s : s + h, s : s + w] for i in range(c)]).astype(np.float32, copy=False)
+    out = np.zeros((c, h, w), np.float32)
+    for i in range(c):
+        conv.add_into(lambda y0, y1, x0, x1: x[i, y0:y1, x0:x1], out[i], -s, -s)
+    return out
 
 
 def _bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:

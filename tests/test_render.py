@@ -370,6 +370,50 @@ def test_conv_add_into_matches_a_direct_full_convolution(monkeypatch, tiles, rad
         np.testing.assert_allclose(dst, want, atol=2e-6)
 
 
+def test_conv_reads_each_input_row_once_per_column_tile(monkeypatch):
+    """Overlap-save bands share 2S input rows: their rows' transforms are reused, so within one
+    column tile no input row is asked for twice, and every row reaching dst is asked for."""
+    import dofsynth.render as R
+
+    monkeypatch.setattr(R, "TILE_ABOVE", 30)
+    monkeypatch.setattr(R, "TILE_ROWS", 30)
+    monkeypatch.setattr(R, "TILE_WIDE", 40)
+    h, w = 67, 83
+    x = rng(32).random((h, w), dtype=np.float32)
+    conv = R._Conv(-9.6, Disk(), h, w)
+    assert not conv.direct and conv.ty < h and conv.tx < w
+    for oy in (0, -13):  # all of the full convolution, or dst cutting off its first rows
+        asked = {}
+
+        def tile(y0, y1, x0, x1):
+            asked.setdefault((x0, x1), []).append((y0, y1))
+            return x[y0:y1, x0:x1]
+
+        dst = np.zeros((h + 2 * conv.s, w + 2 * conv.s), np.float32)
+        conv.add_into(tile, dst, oy, 0)
+        assert len(asked) > 1
+        first = max(-oy - 2 * conv.s, 0)  # input rows above it reach no row of dst
+        for spans in asked.values():
+            rows = [y for y0, y1 in spans for y in range(y0, y1)]
+            assert sorted(rows) == list(range(first, h))
+
+
+def test_convolve_equals_a_zero_padded_direct_convolution():
+    """render.convolve: a (C, h, w) stack, the same positions, zeros beyond the border."""
+    from scipy.signal import convolve2d
+
+    from dofsynth.aperture import kernel
+    from dofsynth.render import convolve
+
+    x = rng(33).random((2, 40, 50), dtype=np.float32)
+    for radius in (0.3, 2.6, -8.4):
+        k = kernel(Polygon(5), radius).astype(np.float64)
+        want = np.stack([convolve2d(c.astype(np.float64), k, mode="same") for c in x])
+        got = convolve(x, radius, Polygon(5))
+        assert got.shape == x.shape and got.dtype == np.float32
+        np.testing.assert_allclose(got, want, atol=2e-6)
+
+
 def test_non_finite_values_are_refused_wherever_they_are():
     """Validation reads each array's min and max once (no isfinite temporaries): a single NaN,
     inf or -inf anywhere, also in a disparity map or an alpha, is still refused."""
