@@ -111,7 +111,7 @@ class _Conv:
         Rows first: each input row's real transform is taken once (bands share 2S rows), and
         the inverse one only for the rows kept."""
         n0, n1, s2 = self.n0, self.n1, 2 * self.s
-        real = np.zeros((n0, n1), np.float32)  # a band's new input rows, zero-padded to n1
+        real = np.empty((n0, n1), np.float32)  # a band's new input rows, zero-padded to n1
         half = np.empty((n0, n1 // 2 + 1), np.complex64)  # the band's row spectra, zero-padded to n0
         shared, shared0 = half[:0], 0  # row spectra the next band reuses, from input row shared0
         for p0, p1, i0, i1 in rows:
