@@ -315,6 +315,16 @@ def test_transparent_plane_changes_nothing():
     np.testing.assert_array_equal(render_planes(base + [ghost], 0.5, 10.0), render_planes(base, 0.5, 10.0))
 
 
+def small_tiles(monkeypatch, rows, wide):
+    """Make the renderer tile convolutions of a few dozen pixels: bands from `rows` rows on,
+    column tiles past `wide` padded columns."""
+    import dofsynth.render as R
+
+    monkeypatch.setattr(R, "TILE_ABOVE", rows)
+    monkeypatch.setattr(R, "TILE_ROWS", rows)
+    monkeypatch.setattr(R, "TILE_WIDE", wide)
+
+
 def test_tiled_fft_convolution_equals_the_whole_frame(monkeypatch):
     """Large convolutions run as overlap-save over FFT tiles: the same result as one FFT."""
     import dofsynth.render as R
@@ -330,9 +340,7 @@ def test_tiled_fft_convolution_equals_the_whole_frame(monkeypatch):
               [Plane(img, g.random((h, w), dtype=np.float32), 0.3)],
               [opaque(img, ramp), Plane(fg, a, np.full((h, w), 0.8, np.float32) - ramp * 0.1)]]
     whole = [render_planes(p, 0.95, 24.0, Polygon(6)) for p in scenes]
-    monkeypatch.setattr(R, "TILE_ABOVE", 40)
-    monkeypatch.setattr(R, "TILE_ROWS", 40)
-    monkeypatch.setattr(R, "TILE_WIDE", 60)
+    small_tiles(monkeypatch, 40, 60)
     conv = R._Conv(10.3, Disk(), h, w)
     assert conv.ty < h and conv.tx < w  # really tiled
     for p, ref in zip(scenes, whole):
@@ -350,9 +358,7 @@ def test_conv_add_into_matches_a_direct_full_convolution(monkeypatch, tiles, rad
     from dofsynth.aperture import kernel
 
     if tiles is not None:
-        monkeypatch.setattr(R, "TILE_ABOVE", tiles[0])
-        monkeypatch.setattr(R, "TILE_ROWS", tiles[0])
-        monkeypatch.setattr(R, "TILE_WIDE", tiles[1])
+        small_tiles(monkeypatch, *tiles)
     g = rng(31)
     h, w = 67, 83
     x = g.random((h, w), dtype=np.float32)
@@ -375,9 +381,7 @@ def test_conv_reads_each_input_row_once_per_column_tile(monkeypatch):
     column tile no input row is asked for twice, and every row reaching dst is asked for."""
     import dofsynth.render as R
 
-    monkeypatch.setattr(R, "TILE_ABOVE", 30)
-    monkeypatch.setattr(R, "TILE_ROWS", 30)
-    monkeypatch.setattr(R, "TILE_WIDE", 40)
+    small_tiles(monkeypatch, 30, 40)
     h, w = 67, 83
     x = rng(32).random((h, w), dtype=np.float32)
     conv = R._Conv(-9.6, Disk(), h, w)
