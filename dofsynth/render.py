@@ -81,19 +81,23 @@ class _Conv:
             self.n1 = sfft.next_fast_len(self.tx + 2 * s, real=True)
             self.spec = _kernel_spectrum(self.k, self.n0, self.n1)
 
-    def _direct(self, x: np.ndarray) -> np.ndarray:
-        """Full convolution of one block by cv2.filter2D (small kernels)."""
-        s = self.s
-        bh, bw = x.shape
-        pad = cv2.copyMakeBorder(np.ascontiguousarray(x, dtype=np.float32), 2 * s, 2 * s, 2 * s, 2 * s,
-                                 cv2.BORDER_CONSTANT, value=0)
-        out = cv2.filter2D(pad, -1, self.flipped, anchor=(s, s), borderType=cv2.BORDER_CONSTANT)
-        return out[s : s + bh + 2 * s, s : s + bw + 2 * s]
+    def _direct(self, tile, i0: int, i1: int, j0: int, j1: int) -> np.ndarray:
+        """Full convolution of input[i0:i1, j0:j1] by cv2.filter2D (small kernels); the block
+        is written straight into the middle of its zero-padded buffer."""
+        s2 = 2 * self.s
+        pad = np.zeros((i1 - i0 + 2 * s2, j1 - j0 + 2 * s2), np.float32)
+        tile(i0, i1, j0, j1, pad[s2 : s2 + i1 - i0, s2 : s2 + j1 - j0])
+        if not s2:
+            return pad
+        out = cv2.filter2D(pad, -1, self.flipped, anchor=(self.s, self.s), borderType=cv2.BORDER_CONSTANT)
+        return out[self.s : self.s + i1 - i0 + s2, self.s : self.s + j1 - j0 + s2]
 
     def add_into(self, tile, dst: np.ndarray, oy: int, ox: int) -> None:
         """dst[oy + p, ox + q] += full[p, q] where it lies inside dst; the input comes from
-        `tile(y0, y1, x0, x1)` -> input[y0:y1, x0:x1]. Overlap-save: only the part of `full`
-        inside dst is computed, in output tiles of (ty, tx), each from the input reaching it."""
+        `tile(y0, y1, x0, x1, out)`, which writes input[y0:y1, x0:x1] into `out` (a float32
+        view of that shape: the FFT's padded buffer, so the input is copied once). Overlap-save:
+        only the part of `full` inside dst is computed, in output tiles of (ty, tx), each from
+        the input reaching it."""
         H, W = dst.shape
         s2 = 2 * self.s
         rows = list(_spans(max(-oy, 0), min(H - oy, self.h + s2), self.h, s2, self.ty))
@@ -102,7 +106,7 @@ class _Conv:
                 self._add_bands(tile, dst, oy, ox + q0, rows, q1 - q0, q0 - j0, j0, j1)
                 continue
             for p0, p1, i0, i1 in rows:
-                block = self._direct(tile(i0, i1, j0, j1)) if s2 else tile(i0, i1, j0, j1)
+                block = self._direct(tile, i0, i1, j0, j1)
                 dst[oy + p0 : oy + p1, ox + q0 : ox + q1] += block[p0 - i0 : p1 - i0, q0 - j0 : q1 - j0]
 
     def _add_bands(self, tile, dst, oy, ox, rows, width, skip, j0, j1) -> None:
@@ -119,7 +123,7 @@ class _Conv:
             if lo > i0:
                 half[: lo - i0] = shared[i0 - shared0 :]
             if i1 > lo:
-                real[: i1 - lo, : j1 - j0] = tile(lo, i1, j0, j1)
+                tile(lo, i1, j0, j1, real[: i1 - lo, : j1 - j0])
                 real[: i1 - lo, j1 - j0 :] = 0.0
                 half[lo - i0 : i1 - i0] = sfft.rfft(real[: i1 - lo], axis=1)
             half[i1 - i0 :] = 0.0
@@ -143,7 +147,7 @@ def convolve(x: np.ndarray, signed_radius: float, aperture: Aperture) -> np.ndar
     conv = _Conv(signed_radius, aperture, h, w)
     out = np.zeros((c, h, w), np.float32)
     for i in range(c):
-        conv.add_into(lambda y0, y1, x0, x1: x[i, y0:y1, x0:x1], out[i], -s, -s)
+        conv.add_into(lambda y0, y1, x0, x1, o: np.copyto(o, x[i, y0:y1, x0:x1]), out[i], -s, -s)
     return out
 
 
@@ -170,26 +174,45 @@ def _compact(m: np.ndarray) -> np.ndarray:
     return m
 
 
-def _grab(a: np.ndarray, y0: int, y1: int, x0: int, x1: int, edge: bool) -> np.ndarray:
+def _grab(a: np.ndarray, y0: int, y1: int, x0: int, x1: int, edge: bool,
+          out: np.ndarray | None = None) -> np.ndarray:
     """a[y0:y1, x0:x1] of a 2-D frame array (or (H, W, 3)) for a box that may leave the frame:
-    outside it, the edge pixel (edge=True) or 0. A view when the box lies inside."""
+    outside it, the edge pixel (edge=True) or 0. A view when the box lies inside; with `out`
+    (the box's shape, any strides) every value is written there instead and `out` returned."""
     H, W = a.shape[:2]
     cy0, cy1, cx0, cx1 = max(y0, 0), min(y1, H), max(x0, 0), min(x1, W)
     if cy1 <= cy0 or cx1 <= cx0:  # wholly outside the frame
-        if not edge:
-            return np.zeros((y1 - y0, x1 - x0) + a.shape[2:], a.dtype)
-        iy, ix = np.clip(np.arange(y0, y1), 0, H - 1), np.clip(np.arange(x0, x1), 0, W - 1)
-        return a[iy[:, None], ix[None, :]]
+        if edge:
+            iy, ix = np.clip(np.arange(y0, y1), 0, H - 1), np.clip(np.arange(x0, x1), 0, W - 1)
+            part = a[iy[:, None], ix[None, :]]
+        else:
+            part = np.zeros((y1 - y0, x1 - x0) + a.shape[2:], a.dtype)
+        if out is None:
+            return part
+        out[...] = part
+        return out
     part = a[cy0:cy1, cx0:cx1]
-    pads = (cy0 - y0, y1 - cy1, cx0 - x0, x1 - cx1)
-    if not any(pads):
-        return part
-    if edge:
-        if 0 in part.strides or part.strides[-1] != part.itemsize:  # cv2 wants unit inner strides
-            part = np.ascontiguousarray(part)
-        return cv2.copyMakeBorder(part, *pads, cv2.BORDER_REPLICATE)
-    out = np.zeros((y1 - y0, x1 - x0) + a.shape[2:], a.dtype)
-    out[pads[0] : pads[0] + part.shape[0], pads[2] : pads[2] + part.shape[1]] = part
+    t, b, l, r = cy0 - y0, y1 - cy1, cx0 - x0, x1 - cx1
+    if out is None:
+        if not (t or b or l or r):
+            return part
+        if edge:
+            if 0 in part.strides or part.strides[-1] != part.itemsize:  # cv2 wants unit inner strides
+                part = np.ascontiguousarray(part)
+            return cv2.copyMakeBorder(part, t, b, l, r, cv2.BORDER_REPLICATE)
+        out = np.zeros((y1 - y0, x1 - x0) + a.shape[2:], a.dtype)
+    h, w = part.shape[:2]
+    out[t : t + h, l : l + w] = part
+    if edge:  # columns first, then whole rows: the corners take the corner pixel
+        out[t : t + h, :l] = out[t : t + h, l : l + 1]
+        out[t : t + h, l + w :] = out[t : t + h, l + w - 1 : l + w]
+        out[:t] = out[t : t + 1]
+        out[t + h :] = out[t + h - 1 : t + h]
+    else:
+        out[t : t + h, :l] = 0.0
+        out[t : t + h, l + w :] = 0.0
+        out[:t] = 0.0
+        out[t + h :] = 0.0
     return out
 
 
@@ -233,9 +256,10 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
     if backmost:  # acc is still black: add the blur straight into it, tile by tile
         one = _is_one(alpha)
         for ch in range(3):
-            def tile(y0, y1, x0, x1, ch=ch):
-                x = _grab(rgb[:, :, ch], gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True)
-                return x if one else x * _grab(alpha, gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True)
+            def tile(y0, y1, x0, x1, out, ch=ch):
+                _grab(rgb[:, :, ch], gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True, out)
+                if not one:
+                    out *= _grab(alpha, gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True)
             conv.add_into(tile, acc[ch], gy0 - s, gx0 - s)
         return
     # a cutout: acc *= 1 - blur(alpha), then acc += blur(colour * alpha), over the blur's
@@ -244,12 +268,13 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
     oy1, ox1 = min(gy1 + s, H), min(gx1 + s, W)
     a_src = np.ascontiguousarray(alpha[gy0:gy1, gx0:gx1], dtype=np.float32)
     keep = np.zeros((oy1 - oy0, ox1 - ox0), np.float32)
-    conv.add_into(lambda y0, y1, x0, x1: a_src[y0:y1, x0:x1], keep, gy0 - s - oy0, gx0 - s - ox0)
+    conv.add_into(lambda y0, y1, x0, x1, out: np.copyto(out, a_src[y0:y1, x0:x1]), keep, gy0 - s - oy0, gx0 - s - ox0)
     np.subtract(np.float32(1.0), keep, out=keep)
     for ch in range(3):
         acc[ch, oy0:oy1, ox0:ox1] *= keep
         src = rgb[gy0:gy1, gx0:gx1, ch]
-        conv.add_into(lambda y0, y1, x0, x1: src[y0:y1, x0:x1] * a_src[y0:y1, x0:x1], acc[ch], gy0 - s, gx0 - s)
+        conv.add_into(lambda y0, y1, x0, x1, out: np.multiply(src[y0:y1, x0:x1], a_src[y0:y1, x0:x1], out=out),
+                      acc[ch], gy0 - s, gx0 - s)
 
 
 def level_grid(cmin: float, cmax: float, level_step: float, level_ratio: float = 0.0) -> np.ndarray:
@@ -319,12 +344,10 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
     # A map constant along x (or y) has weights constant along it: the weight channel's blur
     # is then a 1-D convolution with the kernel's projection (no FFT), kept as a column/row.
     along = 0 if c_e.shape[1] == 1 else (1 if c_e.shape[0] == 1 else None)
-    # Accumulators over O: premultiplied colour (straight into acc for the backmost plane,
-    # which is composited over black), alpha (not for an opaque backmost plane) and weight.
+    # Accumulators over O: premultiplied colour (straight into acc for the backmost plane:
+    # acc is still black), alpha (not for an opaque backmost plane) and weight.
     oh, ow = oy1 - oy0, ox1 - ox0
     col = acc[:, oy0:oy1, ox0:ox1] if backmost else np.zeros((3, oh, ow), np.float32)
-    if backmost:
-        col[...] = 0.0
     a_acc = None if backmost else np.zeros((oh, ow), np.float32)
     w_acc = np.zeros((oh, 1) if along == 0 else (1, ow) if along == 1 else (oh, ow), np.float32)
     # Level k touches pixels with k0 in {k-1, k}: a superset box from per-row/column ranges.
@@ -360,14 +383,16 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         elif along == 1:
             _add_clipped(w_acc, 0, tx0, np.convolve(wsub[0], conv.k.sum(axis=0))[None, :])
         else:
-            conv.add_into(lambda a, b, c, d: wsub[a:b, c:d], w_acc, ty0, tx0)
+            conv.add_into(lambda a, b, c, d, out: np.copyto(out, wsub[a:b, c:d]), w_acc, ty0, tx0)
         a_sub = None if one else _grab(alpha, fy0, fy1, fx0, fx1, backmost)
         wa = np.broadcast_to(wsub if one else wsub * a_sub, (y1 - y0, x1 - x0))
         if a_acc is not None:
-            conv.add_into(lambda a, b, c, d: wa[a:b, c:d], a_acc, ty0, tx0)
-        strip = _grab(rgb, fy0, fy1, fx0, fx1, backmost)  # (h, w, 3), one copy at most
-        for ch in range(3):
-            conv.add_into(lambda a, b, c, d: strip[a:b, c:d, ch] * wa[a:b, c:d], col[ch], ty0, tx0)
+            conv.add_into(lambda a, b, c, d, out: np.copyto(out, wa[a:b, c:d]), a_acc, ty0, tx0)
+        for ch in range(3):  # each channel of the strip read straight into the FFT's buffer
+            def tile(a, b, c, d, out, ch=ch):
+                _grab(rgb[:, :, ch], fy0 + a, fy0 + b, fx0 + c, fx0 + d, backmost, out)
+                out *= wa[a:b, c:d]
+            conv.add_into(tile, col[ch], ty0, tx0)
     np.maximum(w_acc, 1e-12, out=w_acc)
     inv = np.reciprocal(w_acc, out=w_acc)
     if backmost:

@@ -370,7 +370,7 @@ def test_conv_add_into_matches_a_direct_full_convolution(monkeypatch, tiles, rad
                           ((20, 20), -200, 0)]:
         base = g.random(shape, dtype=np.float32)
         dst = base.copy()
-        conv.add_into(lambda y0, y1, x0, x1: x[y0:y1, x0:x1], dst, oy, ox)
+        conv.add_into(lambda y0, y1, x0, x1, out: np.copyto(out, x[y0:y1, x0:x1]), dst, oy, ox)
         want = base.astype(np.float64)
         R._add_clipped(want, oy, ox, full)
         np.testing.assert_allclose(dst, want, atol=2e-6)
@@ -389,9 +389,9 @@ def test_conv_reads_each_input_row_once_per_column_tile(monkeypatch):
     for oy in (0, -30):  # all of the full convolution, or dst cutting off its first 30 rows
         asked = {}
 
-        def tile(y0, y1, x0, x1):
+        def tile(y0, y1, x0, x1, out):
             asked.setdefault((x0, x1), []).append((y0, y1))
-            return x[y0:y1, x0:x1]
+            out[...] = x[y0:y1, x0:x1]
 
         dst = np.zeros((h + 2 * conv.s, w + 2 * conv.s), np.float32)
         conv.add_into(tile, dst, oy, 0)
@@ -400,6 +400,24 @@ def test_conv_reads_each_input_row_once_per_column_tile(monkeypatch):
         for spans in asked.values():
             rows = [y for y0, y1 in spans for y in range(y0, y1)]
             assert sorted(rows) == list(range(first, h))
+
+
+@pytest.mark.parametrize("edge", [True, False])
+def test_grab_into_a_buffer_matches_the_copy(edge):
+    """_grab(..., out=buf) fills a strided buffer with the same values as its own copy (edge
+    replication by cv2.copyMakeBorder, or zeros), for boxes inside, across and outside the frame."""
+    import dofsynth.render as R
+
+    a = rng(33).random((9, 11, 3), dtype=np.float32)
+    for y0, y1, x0, x1 in [(2, 7, 3, 9), (-3, 5, -4, 6), (4, 13, 6, 15), (-2, 12, -3, 14), (10, 13, -5, -1)]:
+        for arr in (a, a[:, :, 1]):  # interleaved frame, and one channel of it (strided)
+            want = np.array(R._grab(arr, y0, y1, x0, x1, edge))
+            assert want.shape[:2] == (y1 - y0, x1 - x0)
+            buf = np.full((y1 - y0 + 2, x1 - x0 + 5) + arr.shape[2:], np.nan, np.float32)
+            out = buf[1 : y1 - y0 + 1, 2 : x1 - x0 + 2]  # a view with foreign strides, NaN-filled
+            assert R._grab(arr, y0, y1, x0, x1, edge, out) is out
+            np.testing.assert_array_equal(out, want)
+            assert np.isnan(buf[0]).all() and np.isnan(buf[:, :2]).all()  # nothing written outside it
 
 
 def test_convolve_equals_a_zero_padded_direct_convolution():
