@@ -12,6 +12,7 @@ depth sensor or a matting-free annotation would report.
 """
 from __future__ import annotations
 
+import mmap
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -94,6 +95,21 @@ def background_image(rgb: np.ndarray, crop, flip: bool, h: int, w: int) -> np.nd
     return np.maximum(out, 0.0, out=out)
 
 
+def lazy_zeros(shape) -> np.ndarray:
+    """A writable float32 array of zeros in its own anonymous memory map: the kernel maps its
+    pages on first touch, so a frame-sized cutout costs time and memory only inside the box
+    that is written (np.zeros does the same only while malloc maps such blocks itself; a
+    worker keeps frame-sized blocks on its heap, where calloc clears them in full)."""
+    count = int(np.prod(shape))
+    if not hasattr(mmap, "MAP_PRIVATE"):  # Windows
+        return np.zeros(shape, np.float32)
+    # private (a shared anonymous map is shmem: no huge pages); unmapped with its last array
+    buf = mmap.mmap(-1, max(count, 1) * 4, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+    if hasattr(mmap, "MADV_HUGEPAGE"):  # as numpy does for its own large arrays: 2 MiB pages
+        buf.madvise(mmap.MADV_HUGEPAGE)
+    return np.frombuffer(buf, np.float32, count=count).reshape(shape)
+
+
 def place_foreground(rgb: np.ndarray, alpha: np.ndarray, extent, params: ObjectParams,
                      h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
     """Crop the asset to `extent`, flip, resize premultiplied by `params.scale` and put its top-left
@@ -106,8 +122,8 @@ def place_foreground(rgb: np.ndarray, alpha: np.ndarray, extent, params: ObjectP
         premul = premul[:, ::-1]
     pw, ph = placed_size(params.scale, ew, eh)
     small = resize(premul, pw, ph)
-    out_rgb = np.zeros((h, w, 3), np.float32)
-    out_a = np.zeros((h, w), np.float32)
+    out_rgb = lazy_zeros((h, w, 3))
+    out_a = lazy_zeros((h, w))
     x0, y0 = max(params.x, 0), max(params.y, 0)
     x1, y1 = min(params.x + pw, w), min(params.y + ph, h)
     if x1 <= x0 or y1 <= y0:

@@ -88,13 +88,14 @@ _POOL: dict = {"recipe": None, "queue": None}
 # default glibc gives every block above a dynamic threshold (<= 32 MiB) its own mmap and hands
 # freed heap tops above 2x that threshold back to the kernel, so each FFT tile, strip and frame
 # of a sample comes back as fresh pages that are zeroed and faulted in again on first touch
-# (0.2-0.45 s per 192 MiB at 4096 px). A worker does one thing, the same sample shape again and
-# again: keeping blocks up to WORKER_MMAP_THRESHOLD on the heap and up to WORKER_TRIM_THRESHOLD
-# of free heap reuses those pages (docs/generate.md, "Speed"). Frame-sized blocks above the
-# mmap threshold still map and unmap, which bounds the extra memory.
+# (0.1-0.45 s per 192 MiB at 4096 px on a VM). A worker does one thing, the same sample shape
+# again and again: keeping blocks up to WORKER_MMAP_THRESHOLD (an RGB float32 frame at 4096
+# px is 192 MiB) on the heap and up to WORKER_TRIM_THRESHOLD of free heap reuses those pages
+# (docs/generate.md, "Speed"). Cutout frames, mostly zeros, are `compose.lazy_zeros` maps of
+# their own, so calloc does not clear them in full on the heap; larger frames still map.
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-WORKER_MMAP_THRESHOLD = 32 << 20
-WORKER_TRIM_THRESHOLD = 512 << 20
+WORKER_MMAP_THRESHOLD = 256 << 20
+WORKER_TRIM_THRESHOLD = 1024 << 20
 MALLOC_ENV = "DOFSYNTH_WORKER_MALLOC"  # "default": leave glibc's settings (benchmarks compare)
 
 
