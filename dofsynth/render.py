@@ -181,28 +181,19 @@ def _grab(a: np.ndarray, y0: int, y1: int, x0: int, x1: int, edge: bool,
     (the box's shape, any strides) every value is written there instead and `out` returned."""
     H, W = a.shape[:2]
     cy0, cy1, cx0, cx1 = max(y0, 0), min(y1, H), max(x0, 0), min(x1, W)
+    if out is None:
+        if (cy0, cy1, cx0, cx1) == (y0, y1, x0, x1):
+            return a[y0:y1, x0:x1]
+        out = np.empty((y1 - y0, x1 - x0) + a.shape[2:], a.dtype)
     if cy1 <= cy0 or cx1 <= cx0:  # wholly outside the frame
         if edge:
             iy, ix = np.clip(np.arange(y0, y1), 0, H - 1), np.clip(np.arange(x0, x1), 0, W - 1)
-            part = a[iy[:, None], ix[None, :]]
+            out[...] = a[iy[:, None], ix[None, :]]
         else:
-            part = np.zeros((y1 - y0, x1 - x0) + a.shape[2:], a.dtype)
-        if out is None:
-            return part
-        out[...] = part
+            out[...] = 0.0
         return out
-    part = a[cy0:cy1, cx0:cx1]
-    t, b, l, r = cy0 - y0, y1 - cy1, cx0 - x0, x1 - cx1
-    if out is None:
-        if not (t or b or l or r):
-            return part
-        if edge:
-            if 0 in part.strides or part.strides[-1] != part.itemsize:  # cv2 wants unit inner strides
-                part = np.ascontiguousarray(part)
-            return cv2.copyMakeBorder(part, t, b, l, r, cv2.BORDER_REPLICATE)
-        out = np.zeros((y1 - y0, x1 - x0) + a.shape[2:], a.dtype)
-    h, w = part.shape[:2]
-    out[t : t + h, l : l + w] = part
+    t, l, h, w = cy0 - y0, cx0 - x0, cy1 - cy0, cx1 - cx0
+    out[t : t + h, l : l + w] = a[cy0:cy1, cx0:cx1]
     if edge:  # columns first, then whole rows: the corners take the corner pixel
         out[t : t + h, :l] = out[t : t + h, l : l + 1]
         out[t : t + h, l + w :] = out[t : t + h, l + w - 1 : l + w]

@@ -403,21 +403,29 @@ def test_conv_reads_each_input_row_once_per_column_tile(monkeypatch):
 
 
 @pytest.mark.parametrize("edge", [True, False])
-def test_grab_into_a_buffer_matches_the_copy(edge):
-    """_grab(..., out=buf) fills a strided buffer with the same values as its own copy (edge
-    replication by cv2.copyMakeBorder, or zeros), for boxes inside, across and outside the frame."""
+def test_grab_reads_a_box_edge_replicated_or_zero_padded(edge):
+    """_grab, as a new array and written into a strided buffer, equals the frame read at clipped
+    indices (edge replication) or the frame pasted into zeros, for boxes inside, across and
+    wholly outside the frame; a box inside is a view of the frame."""
     import dofsynth.render as R
 
     a = rng(33).random((9, 11, 3), dtype=np.float32)
     for y0, y1, x0, x1 in [(2, 7, 3, 9), (-3, 5, -4, 6), (4, 13, 6, 15), (-2, 12, -3, 14), (10, 13, -5, -1)]:
+        iy, ix = np.arange(y0, y1), np.arange(x0, x1)
         for arr in (a, a[:, :, 1]):  # interleaved frame, and one channel of it (strided)
-            want = np.array(R._grab(arr, y0, y1, x0, x1, edge))
-            assert want.shape[:2] == (y1 - y0, x1 - x0)
+            if edge:
+                want = arr[np.clip(iy, 0, 8)[:, None], np.clip(ix, 0, 10)[None, :]]
+            else:
+                inside = ((iy >= 0) & (iy < 9))[:, None] & ((ix >= 0) & (ix < 11))[None, :]
+                want = np.where(inside.reshape(inside.shape + (1,) * (arr.ndim - 2)),
+                                arr[np.clip(iy, 0, 8)[:, None], np.clip(ix, 0, 10)[None, :]], 0.0)
+            np.testing.assert_array_equal(R._grab(arr, y0, y1, x0, x1, edge), want)
             buf = np.full((y1 - y0 + 2, x1 - x0 + 5) + arr.shape[2:], np.nan, np.float32)
             out = buf[1 : y1 - y0 + 1, 2 : x1 - x0 + 2]  # a view with foreign strides, NaN-filled
             assert R._grab(arr, y0, y1, x0, x1, edge, out) is out
             np.testing.assert_array_equal(out, want)
             assert np.isnan(buf[0]).all() and np.isnan(buf[:, :2]).all()  # nothing written outside it
+    assert np.shares_memory(R._grab(a, 2, 7, 3, 9, edge), a)
 
 
 def test_convolve_equals_a_zero_padded_direct_convolution():
