@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from dofsynth.assets import Asset, AssetLibrary
-from dofsynth.planes import Plane
+from dofsynth.planes import Plane, alpha_box
 from dofsynth.scene import ObjectParams, Scene, placed_size
 
 COVER_THRESHOLD = 0.5
@@ -149,13 +149,9 @@ def _asset(library: AssetLibrary, scene: Scene, role: str) -> Asset:
 
 
 def _alpha_box(alpha: np.ndarray) -> tuple[slice, slice] | None:
-    """Row and column slices of the bounding box of alpha > 0, or None when it is all 0."""
-    on = alpha > 0
-    rows = np.flatnonzero(on.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(on[rows[0]:rows[-1] + 1].any(axis=0))
-    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+    """Row and column slices of `planes.alpha_box`, or None when alpha is all 0."""
+    box = alpha_box(alpha)
+    return None if box is None else (slice(box[0], box[1]), slice(box[2], box[3]))
 
 
 def scene_layers(scene: Scene, library: AssetLibrary) -> Layers:

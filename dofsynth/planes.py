@@ -47,6 +47,17 @@ class Plane:
         return np.concatenate([self.rgb * a, a], axis=2).astype(np.float32)
 
 
+def alpha_box(alpha: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(y0, y1, x0, x1): the bounding box of alpha > 0 (a `Plane.box`), or None when alpha is
+    0 everywhere."""
+    on = np.asarray(alpha) > 0
+    rows = np.flatnonzero(on.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(on[rows[0] : rows[-1] + 1].any(axis=0))
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
 def _range(name: str, arr: np.ndarray) -> tuple[float, float]:
     """(min, max) of an array, refusing NaN and inf: one pass each, no frame-sized temporaries
     (NaN propagates through min, inf shows in min or max). A broadcast axis is read once."""

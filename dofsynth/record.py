@@ -33,7 +33,7 @@ from dofsynth import __version__
 from dofsynth.aperture import from_dict as aperture_from_dict
 from dofsynth.color import highlight_boost, linear_to_srgb, linear_to_srgb8, to_uint8
 from dofsynth.io import decode_exr, decode_image, encode_exr
-from dofsynth.planes import Plane
+from dofsynth.planes import Plane, alpha_box
 
 SCHEMA_VERSION = 1
 RENDERER_ID = "layered-v1"
@@ -215,18 +215,11 @@ def render_sample(scene, library, recipe) -> dict[str, bytes]:
         # the planes are this call's own fresh arrays: boost in place (no frame-sized copies)
         for i, p in enumerate(planes):
             rgb = p.rgb
-            if i > 0 and p.box is not None:  # a cutout's colour is 0 outside its alpha box
-                y0, y1, x0, x1 = p.box
-                if y1 <= y0 or x1 <= x0:
+            if i > 0:  # a cutout's colour is 0 outside its alpha box (searched for if not given)
+                box = p.box if p.box is not None else alpha_box(p.alpha)
+                if box is None or box[1] <= box[0] or box[3] <= box[2]:
                     continue
-                rgb = rgb[y0:y1, x0:x1]
-            elif i > 0:  # the same box, searched for
-                on = np.asarray(p.alpha) > 0
-                rows = np.flatnonzero(on.any(axis=1))
-                if rows.size == 0:
-                    continue
-                cols = np.flatnonzero(on[rows[0]:rows[-1] + 1].any(axis=0))
-                rgb = rgb[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+                rgb = rgb[box[0]:box[1], box[2]:box[3]]
             highlight_boost(rgb, **highlight, out=rgb)
         blur_planes = planes
     else:

@@ -26,7 +26,7 @@ import numpy as np
 import scipy.fft as sfft
 
 from dofsynth.aperture import Aperture, Disk, Polygon, kernel, support_radius
-from dofsynth.planes import validate_planes
+from dofsynth.planes import alpha_box, validate_planes
 
 # Kernels with support radius up to this many pixels (11x11) go through cv2.filter2D (direct,
 # 2-6x faster there, measured), larger ones via FFT (cv2 switches to its own slower DFT beyond).
@@ -149,14 +149,6 @@ def convolve(x: np.ndarray, signed_radius: float, aperture: Aperture) -> np.ndar
     for i in range(c):
         conv.add_into(lambda y0, y1, x0, x1, o: np.copyto(o, x[i, y0:y1, x0:x1]), out[i], -s, -s)
     return out
-
-
-def _bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
-    rows = np.flatnonzero(mask.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(mask[rows[0] : rows[-1] + 1].any(axis=0))
-    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
 def _is_one(alpha: np.ndarray) -> bool:
@@ -451,10 +443,10 @@ def render_planes(
             box = (0, H, 0, W)
         elif plane.box is not None:  # alpha is 0 outside it: the bounding box of alpha > 0 inside
             by0, by1, bx0, bx1 = (int(v) for v in plane.box)
-            inner = _bbox(alpha[by0:by1, bx0:bx1] > 0) if by1 > by0 and bx1 > bx0 else None
+            inner = alpha_box(alpha[by0:by1, bx0:bx1]) if by1 > by0 and bx1 > bx0 else None
             box = None if inner is None else (by0 + inner[0], by0 + inner[1], bx0 + inner[2], bx0 + inner[3])
         else:
-            box = _bbox(alpha > 0)
+            box = alpha_box(alpha)
         if box is None:  # fully transparent: nothing to add
             continue
         d = plane.constant_disparity()
