@@ -32,7 +32,7 @@ class Plane:
         d = self.disparity
         if np.isscalar(d) or np.ndim(d) == 0:
             return float(d)
-        lo, hi = float(np.min(d)), float(np.max(d))
+        lo, hi = _min_max(np.asarray(d))
         return lo if lo == hi else None
 
     def disparity_map(self) -> np.ndarray:
@@ -58,12 +58,32 @@ def alpha_box(alpha: np.ndarray) -> tuple[int, int, int, int] | None:
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
-def _range(name: str, arr: np.ndarray) -> tuple[float, float]:
-    """(min, max) of an array, refusing NaN and inf: one pass each, no frame-sized temporaries
-    (NaN propagates through min, inf shows in min or max). A broadcast axis is read once."""
+_BLOCK_BYTES = 1 << 20  # _min_max reads this much at a time: its second pass finds it in cache
+
+
+def _min_max(arr: np.ndarray) -> tuple[float, float]:
+    """(min, max) of an array (NaN propagates), (0, 0) when empty. A broadcast axis is read
+    once, and a large array in row blocks: min and max of each block, so that the frame goes
+    through memory once (at 4096 px a whole-frame min then max read 192 MiB twice)."""
     if arr.ndim and arr.size:
         arr = arr[tuple(slice(0, 1) if st == 0 else slice(None) for st in arr.strides)]
-    lo, hi = (float(np.min(arr)), float(np.max(arr))) if arr.size else (0.0, 0.0)
+    if not arr.size:
+        return 0.0, 0.0
+    if arr.ndim < 2 or arr.nbytes <= _BLOCK_BYTES:
+        return float(np.min(arr)), float(np.max(arr))
+    step = max(_BLOCK_BYTES // (arr[0].size * arr.itemsize), 1)
+    lo, hi = [], []
+    for r in range(0, arr.shape[0], step):
+        block = arr[r : r + step]
+        lo.append(np.min(block))
+        hi.append(np.max(block))
+    return float(np.min(lo)), float(np.max(hi))
+
+
+def _range(name: str, arr: np.ndarray) -> tuple[float, float]:
+    """(min, max) of an array, refusing NaN and inf: NaN propagates through min, inf shows in
+    min or max."""
+    lo, hi = _min_max(arr)
     if not (np.isfinite(lo) and np.isfinite(hi)):
         raise ValueError(f"{name} contains NaN or inf")
     return lo, hi

@@ -460,6 +460,26 @@ def test_non_finite_values_are_refused_wherever_they_are():
                 render_planes([Plane(arrays["rgb"], arrays["alpha"], arrays["disparity"])], 0.3, 4.0)
 
 
+def test_min_max_in_row_blocks_matches_numpy(monkeypatch):
+    """Large arrays are read in row blocks (min and max of each while it is in cache): the same
+    answer as whole-array min and max for views, broadcasts and a NaN or inf in any block."""
+    from dofsynth import planes as planes_mod
+
+    monkeypatch.setattr(planes_mod, "_BLOCK_BYTES", 200)  # a few rows per block
+    g = rng(23)
+    frame = g.random((37, 13, 3), dtype=np.float32) - 0.25
+    cases = [frame, frame[:, :, 1], frame[3:30, 2:11], frame[::-2], frame[:, ::3, :2],
+             np.broadcast_to(frame[:, :1, 0], (37, 13)), np.broadcast_to(frame[0, :, 0], (37, 13))]
+    for arr in cases:
+        assert planes_mod._min_max(arr) == (float(arr.min()), float(arr.max()))
+    for row in (0, 18, 36):  # the first, a middle and the last block
+        for bad in (np.nan, np.inf, -np.inf):
+            arr = frame.copy()
+            arr[row, 5, 2] = bad
+            with pytest.raises(ValueError, match="planes\\[0\\].rgb contains NaN or inf"):
+                render_planes([Plane(arr, np.ones((37, 13), np.float32), 0.5)], 0.3, 4.0)
+
+
 @pytest.mark.parametrize("method", ["layered", "exact"])
 def test_planar_result_is_the_same_image(method):
     g = rng(22)
