@@ -1,7 +1,7 @@
 """Benchmark `dofsynth generate` at large sizes: time per sample, peak memory per worker, and the
 speed-up from 1 to 2 local workers, all in one run.
 
-    .venv/bin/python benchmarks/generate.py                       # 1024, 2048, 4096 px: about 4 minutes
+    .venv/bin/python benchmarks/generate.py                       # 1024, 2048, 4096 px: about 3 minutes
     .venv/bin/python benchmarks/generate.py --sizes 1024 --samples 4 --scaling 0:0
     .venv/bin/python benchmarks/generate.py --sizes 4096 --breakdown   # where a 4096 px sample's memory goes
     .venv/bin/python benchmarks/generate.py --sizes 512 1024 --floor   # plus the I/O floor
@@ -172,8 +172,9 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048, 4096])
     ap.add_argument("--samples", type=int, default=4,
                     help="samples per run, the same ones at every size (default 4; even, so 2 workers share them)")
-    ap.add_argument("--repeat", type=int, default=3,
-                    help="1-worker runs per size, the sizes interleaved; s/sample is their median (default 3)")
+    ap.add_argument("--repeat", type=int, default=5,
+                    help="1-worker runs per size, the sizes interleaved; s/sample is their median (default 5: "
+                         "a slow spell of a shared machine rarely covers 3 of 5)")
     ap.add_argument("--floor", action="store_true", help="also measure the I/O floor (in this process)")
     ap.add_argument("--breakdown", action="store_true", help="also trace one sample's memory step by step")
     ap.add_argument("--malloc", default=None, metavar="SETTING",
