@@ -136,6 +136,11 @@ class _Conv:
             dst[oy + p0 : oy + p1, ox : ox + width] += out[:, skip : skip + width]
 
 
+def _copy_tile(a: np.ndarray):
+    """The `_Conv.add_into` tile callback that reads the input from array `a` (any strides)."""
+    return lambda y0, y1, x0, x1, out: np.copyto(out, a[y0:y1, x0:x1])
+
+
 def convolve(x: np.ndarray, signed_radius: float, aperture: Aperture) -> np.ndarray:
     """Convolve a (C, h, w) float32 stack with the kernel of `signed_radius` pixels.
 
@@ -147,7 +152,7 @@ def convolve(x: np.ndarray, signed_radius: float, aperture: Aperture) -> np.ndar
     conv = _Conv(signed_radius, aperture, h, w)
     out = np.zeros((c, h, w), np.float32)
     for i in range(c):
-        conv.add_into(lambda y0, y1, x0, x1, o: np.copyto(o, x[i, y0:y1, x0:x1]), out[i], -s, -s)
+        conv.add_into(_copy_tile(x[i]), out[i], -s, -s)
     return out
 
 
@@ -251,7 +256,7 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
     oy1, ox1 = min(gy1 + s, H), min(gx1 + s, W)
     a_src = np.ascontiguousarray(alpha[gy0:gy1, gx0:gx1], dtype=np.float32)
     keep = np.zeros((oy1 - oy0, ox1 - ox0), np.float32)
-    conv.add_into(lambda y0, y1, x0, x1, out: np.copyto(out, a_src[y0:y1, x0:x1]), keep, gy0 - s - oy0, gx0 - s - ox0)
+    conv.add_into(_copy_tile(a_src), keep, gy0 - s - oy0, gx0 - s - ox0)
     np.subtract(np.float32(1.0), keep, out=keep)
     for ch in range(3):
         acc[ch, oy0:oy1, ox0:ox1] *= keep
@@ -366,11 +371,11 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         elif along == 1:
             _add_clipped(w_acc, 0, tx0, np.convolve(wsub[0], conv.k.sum(axis=0))[None, :])
         else:
-            conv.add_into(lambda a, b, c, d, out: np.copyto(out, wsub[a:b, c:d]), w_acc, ty0, tx0)
+            conv.add_into(_copy_tile(wsub), w_acc, ty0, tx0)
         a_sub = None if one else _grab(alpha, fy0, fy1, fx0, fx1, backmost)
         wa = np.broadcast_to(wsub if one else wsub * a_sub, (y1 - y0, x1 - x0))
         if a_acc is not None:
-            conv.add_into(lambda a, b, c, d, out: np.copyto(out, wa[a:b, c:d]), a_acc, ty0, tx0)
+            conv.add_into(_copy_tile(wa), a_acc, ty0, tx0)
         for ch in range(3):  # each channel of the strip read straight into the FFT's buffer
             def tile(a, b, c, d, out, ch=ch):
                 _grab(rgb[:, :, ch], fy0 + a, fy0 + b, fx0 + c, fx0 + d, backmost, out)
