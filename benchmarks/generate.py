@@ -3,7 +3,6 @@ speed-up from 1 to 2 local workers, all in one run.
 
     .venv/bin/python benchmarks/generate.py                       # 1024, 2048, 4096 px: about 3 minutes
     .venv/bin/python benchmarks/generate.py --sizes 1024 --samples 4 --scaling 0:0
-    .venv/bin/python benchmarks/generate.py --sizes 4096 --breakdown   # where a 4096 px sample's memory goes
     .venv/bin/python benchmarks/generate.py --sizes 512 1024 --floor   # plus the I/O floor
 
 The recipe is recipes/deeplens-18k.toml (1 target per scene, max CoC 32 px at 1024 px) with the
@@ -24,11 +23,8 @@ memory belongs to that size alone. Columns:
   process's asset library: 0.5-0.9 s here) weighs little, as in a real job; it also prints that
   start-up (and the idle tail of the run).
 - `--malloc default`: the workers keep glibc's own malloc settings (before/after comparisons of
-  `dofsynth.executors.tune_malloc`).
+  `dofsynth.generate.worker.setup_process`).
 - `--floor`: the I/O floor, encoding the same decoded arrays to PNG/EXR/JSON and writing a tar.
-- `--breakdown`: renders one sample of each size in this process, step by step as
-  `dofsynth.record.render_sample` does, and prints per step the NumPy memory it holds and its
-  peak (tracemalloc) and this process's ru_maxrss after it.
 On a machine whose cores are shared with other jobs the 2-worker numbers mostly show the load.
 """
 from __future__ import annotations
@@ -36,7 +32,6 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import resource
 import statistics
 import sys
 import tempfile
@@ -46,9 +41,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dofsynth.config import recipe_from_text  # noqa: E402
-from dofsynth.executors import MALLOC_ENV, WORKER_MMAP_THRESHOLD, WORKER_TRIM_THRESHOLD, LocalExecutor  # noqa: E402
-from dofsynth.generate import _library_for, generate, render_one  # noqa: E402
+from dofsynth.generate import LocalExecutor, generate, render_one  # noqa: E402
+from dofsynth.generate.worker import MALLOC_ENV, WORKER_MMAP_THRESHOLD, WORKER_TRIM_THRESHOLD, library_for  # noqa: E402
+from dofsynth.recipe import recipe_from_text  # noqa: E402
 
 TARGET_MIB = 1536
 
@@ -76,7 +71,7 @@ def io_floor(recipe, n: int, folder: Path) -> float:
     from dofsynth.record import decode_sample, encode_cover, encode_png8, encode_record
     from dofsynth.shards import write_shard
 
-    library = _library_for(recipe)
+    library = library_for(recipe)
     samples = [render_one(recipe, library, "train", i) for i in range(n)]
     decoded = [decode_sample(m, k) for k, m in samples]
     t0 = time.perf_counter()
@@ -88,68 +83,6 @@ def io_floor(recipe, n: int, folder: Path) -> float:
         out.append((key, members))
     write_shard(folder / "floor.tar", out)
     return (time.perf_counter() - t0) / n
-
-
-def _rss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def breakdown(recipe) -> None:
-    """One sample, step by step as record.render_sample does it: NumPy memory (tracemalloc:
-    held after the step, peak during it) and ru_maxrss after it."""
-    import tracemalloc
-
-    import numpy as np
-
-    from dofsynth.aperture import from_dict as aperture_from_dict
-    from dofsynth.color import highlight_boost
-    from dofsynth.compose import scene_layers
-    from dofsynth.io import encode_exr
-    from dofsynth.record import encode_alphas, encode_srgb_png, encode_srgb_png_planar, sample_record
-    from dofsynth.render import render_planes
-    from dofsynth.scene import sample_scene
-
-    library = _library_for(recipe)
-    h, w = recipe.frame
-    frame = h * w * 4 / 2**20
-    print(f"\nbreakdown at {recipe.size} px ({h}x{w}); one float32 channel = {frame:.0f} MiB, "
-          f"an RGB float32 frame = {3 * frame:.0f} MiB; ru_maxrss before: {_rss_mib():.0f} MiB")
-    print(f"  {'step':<34} {'held MiB':>9} {'peak MiB':>9} {'ru_maxrss':>10} {'s':>6}")
-    tracemalloc.start()
-    keep = {}
-
-    def step(name, fn):
-        tracemalloc.reset_peak()
-        t0 = time.perf_counter()
-        out = fn()
-        dt = time.perf_counter() - t0
-        cur, peak = tracemalloc.get_traced_memory()
-        print(f"  {name:<34} {cur / 2**20:>9.0f} {peak / 2**20:>9.0f} {_rss_mib():>10.0f} {dt:>6.2f}", flush=True)
-        return out
-
-    scene = step("sample_scene", lambda: sample_scene(recipe, library, "train", 0))
-    record = sample_record(scene)
-    layers = step("scene_layers (compose)", lambda: scene_layers(scene, library))
-    planes = list(layers.planes)
-    keep["members"] = step("encode aif/depth/cover", lambda: {
-        "aif.png": encode_srgb_png(layers.aif),
-        "depth.exr": encode_exr(np.asarray(layers.disparity, dtype=np.float32)),
-        "cover.png": encode_alphas(planes[2].alpha, planes[1].alpha)})
-    del layers
-    step("drop aif/disparity", lambda: None)
-    hl = recipe.render.highlight
-    if hl.enabled:
-        def boost():
-            for p in planes:
-                highlight_boost(p.rgb, threshold=hl.threshold, gain=hl.gain, power=hl.power, out=p.rgb)
-        step("highlight boost (in place)", boost)
-    aperture = aperture_from_dict(record.get("aperture") or {"kind": "disk"})
-    for n, t in enumerate(record["targets"]):
-        img = step(f"render_planes target {n}", lambda: render_planes(planes, float(t["focus"]),
-                                                                      float(t["max_coc"]), aperture, planar=True))
-        step(f"encode dof.{n}.png", lambda: encode_srgb_png_planar(img))
-        del img
-    tracemalloc.stop()
 
 
 def run(recipe, out: Path, workers: int):
@@ -176,10 +109,9 @@ def main(argv=None) -> int:
                     help="1-worker runs per size, the sizes interleaved; s/sample is their median (default 5: "
                          "a slow spell of a shared machine rarely covers 3 of 5)")
     ap.add_argument("--floor", action="store_true", help="also measure the I/O floor (in this process)")
-    ap.add_argument("--breakdown", action="store_true", help="also trace one sample's memory step by step")
     ap.add_argument("--malloc", default=None, metavar="SETTING",
                     help="the workers' glibc malloc setting (DOFSYNTH_WORKER_MALLOC): 'default' = glibc's own, "
-                         "'MMAP_MIB,TRIM_MIB'; unset = dofsynth.executors' worker settings")
+                         "'MMAP_MIB,TRIM_MIB'; unset = the worker settings of dofsynth.generate.worker")
     ap.add_argument("--scaling", type=_size_samples, default=(1024, 96), metavar="SIZE:SAMPLES",
                     help="the 1 -> 2 worker run: SAMPLES samples at SIZE px (default 1024:96, about 35 s: long "
                          "enough that starting the workers weighs little); 0:0 skips it")
@@ -231,9 +163,6 @@ def main(argv=None) -> int:
               f"w=2 {runs[2].samples_per_second:.2f} samples/s ({runs[2].seconds:.1f} s): speed-up {speed:.2f} "
               f"(target >= 1.8); steady {steady:.2f}. Start-up and tail (wall - shard time / workers): {start}.",
               flush=True)
-    if args.breakdown:
-        for size in args.sizes:
-            breakdown(bench_recipe(base, size, 1))
     return 0
 
 

@@ -13,8 +13,7 @@ Run: `.venv/bin/python benchmarks/render.py [--size N] [--repeat K]`.
      `.venv/bin/python benchmarks/render.py --generation [--sizes 1024 4096] [--samples 8]`:
      recipes/deeplens-18k.toml with the built-in assets at each size (max CoC scaled), samples
      0..N-1 after one warm-up sample, each stage timed by wrapping the function that does it;
-     medians over the samples, wall and CPU seconds. With `PYTHONPATH=OLD_TREE` it times an
-     older checkout the same way (before/after comparisons on the same machine state).
+     medians over the samples, wall and CPU seconds.
      `.venv/bin/python benchmarks/render.py --levels`: the level-spacing error table.
 """
 from __future__ import annotations
@@ -32,8 +31,8 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.fft  # noqa: E402
 
-from dofsynth.aperture import Disk, Polygon, kernel, support_radius  # noqa: E402
-from dofsynth.planes import Plane  # noqa: E402
+from dofsynth.optics import Disk, Polygon, kernel, support_radius  # noqa: E402
+from dofsynth.render.planes import Plane  # noqa: E402
 from dofsynth.render import render_planes  # noqa: E402
 
 MAX_COC = 32.0
@@ -83,24 +82,24 @@ def timed(fn, repeat):
     return statistics.median(times), times
 
 
-STAGES = (("scene", "dofsynth.scene", "sample_scene"), ("compose", "dofsynth.compose", "scene_layers"),
-          ("boost", "dofsynth.record", "highlight_boost"), ("render", "dofsynth.render", "render_planes"),
-          ("encode aif+dof", "dofsynth.record", "encode_srgb_png_rows"),  # encode_srgb_png calls it
-          ("encode aif+dof", "dofsynth.record", "encode_srgb_png"),
-          ("encode aif+dof", "dofsynth.record", "encode_srgb_png_planar"),  # dof.N.png (planar render)
-          ("encode cover", "dofsynth.record", "encode_cover"),
-          ("encode cover", "dofsynth.record", "encode_alphas"), ("encode depth", "dofsynth.record", "encode_exr"))
+# (stage, module whose name is wrapped, name): the names as dofsynth.sample and the worker call them
+STAGES = (("scene", "dofsynth.generate.worker", "sample_scene"), ("compose", "dofsynth.sample", "scene_layers"),
+          ("boost", "dofsynth.sample", "highlight_boost"), ("render", "dofsynth.sample", "render_planes"),
+          ("encode aif+dof", "dofsynth.sample", "encode_srgb_png_rows"),
+          ("encode aif+dof", "dofsynth.sample", "encode_srgb_png_planar"),  # dof.N.png (planar render)
+          ("encode aif+dof", "dofsynth.sample", "encode_png8"),
+          ("encode cover", "dofsynth.sample", "encode_alphas"), ("encode depth", "dofsynth.sample", "encode_exr"))
 
 
 def generation_stages(sizes, samples: int) -> None:
-    """Per-stage wall/CPU time of dofsynth.generate.render_one plus the tar write."""
+    """Per-stage wall/CPU time of dofsynth.generate.worker.render_one plus the tar write."""
     import importlib
     import re
     import tempfile
     from pathlib import Path
 
-    from dofsynth.config import recipe_from_text
-    from dofsynth.generate import _library_for, render_one
+    from dofsynth.generate.worker import library_for, render_one
+    from dofsynth.recipe import recipe_from_text
     from dofsynth.shards import write_shard
 
     acc: dict[str, list[float]] = {}
@@ -122,11 +121,7 @@ def generation_stages(sizes, samples: int) -> None:
         timed_fn._timed = True
         setattr(mod, name, timed_fn)
 
-    import dofsynth.record
-
     for stage, module, name in STAGES:
-        if name == "encode_srgb_png" and hasattr(dofsynth.record, "encode_srgb_png_rows"):
-            continue  # counted through encode_srgb_png_rows
         wrap(stage, module, name)
     root = Path(__file__).resolve().parents[1]
     base = (root / "recipes" / "deeplens-18k.toml").read_text(encoding="utf-8")
@@ -141,7 +136,7 @@ def generation_stages(sizes, samples: int) -> None:
         t = re.sub(r"(?m)^max_coc = \[([\d.]+), ([\d.]+)\]",
                    lambda m: f"max_coc = [{float(m.group(1)) * size / 1024}, {float(m.group(2)) * size / 1024}]", t)
         recipe = recipe_from_text(t, f"bench-{size}.toml", root / "recipes")
-        library = _library_for(recipe)
+        library = library_for(recipe)
         render_one(recipe, library, "train", samples)  # warm-up (kernels, FFT plans, memory)
         rows = []
         with tempfile.TemporaryDirectory() as tmp:
@@ -169,7 +164,7 @@ def level_errors() -> None:
     from pathlib import Path
 
     from dofsynth.io import load_linear_rgba
-    from dofsynth.render import level_grid
+    from dofsynth.render.layered import level_grid
 
     photo = Path(__file__).resolve().parents[2] / "shared" / "assets" / "bg" / "kodak_kodim01.png"
     img, _ = load_linear_rgba(photo)

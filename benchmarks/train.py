@@ -60,7 +60,7 @@ def bench_training(cfg, device: str, crop: int, batch: int, steps: int) -> float
 
 def bench_loader(cfg, tmp: Path, n: int = 8) -> tuple[float, int]:
     """Samples/s of one loader process (decode, depth corruption, crop) on demo-recipe samples."""
-    from dofsynth.config import load_recipe
+    from dofsynth.recipe import load_recipe
     from dofsynth.generate import generate
     from dofsynth.train.data import DofShards, find_shards, resolve
 

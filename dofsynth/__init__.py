@@ -2,8 +2,11 @@
 
 Conventions everywhere: images in files are sRGB-encoded; blurring and compositing happen in
 linear light, float32. Depth is normalized disparity in [0, 1] (1 = nearest, 0 = infinity).
-The signed circle-of-confusion radius in pixels is `c = max_coc * (disparity - focus)`.
+The signed circle-of-confusion radius in pixels is `c = max_coc * (disparity - focus)`
+(dofsynth.optics.coc_radius).
+
+The package reads as the data flow, each stage importing only earlier ones:
+config/recipe/rng/files/color/image/io -> optics -> assets -> scene -> render -> compose ->
+record -> sample -> shards/manifest/locks -> generate -> qa -> train -> commands/cli.
 """
 __version__ = "0.1.0"
-from dofsynth.aperture import Disk, Polygon  # noqa: E402
-from dofsynth.render import render_planes  # noqa: E402

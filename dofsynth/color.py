@@ -35,11 +35,6 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, x * 12.92, 1.055 * x ** (1 / 2.4) - 0.055).astype(np.float32)
 
 
-def to_uint8(srgb: np.ndarray) -> np.ndarray:
-    """Quantise sRGB-encoded values in [0, 1] to uint8 with round-half-up."""
-    return np.floor(np.clip(srgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-
-
 # ------------------------------------------------------------------------------ lookup tables
 # 8-bit decode: the float64 formula at k/255, rounded once to float32 (exact to half an ulp).
 SRGB8_TO_LINEAR = _srgb_decode64(np.arange(256) / 255.0).astype(np.float32)

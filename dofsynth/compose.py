@@ -6,7 +6,7 @@ larger than the source), INTER_LINEAR otherwise. Foregrounds are resampled premu
 (colour x alpha together with alpha) and turned back to straight colour, so no dark or bright
 fringes come from the transparent surround.
 
-`Layers.disparity` is, at each pixel, the disparity of the front-most plane whose alpha is
+`SceneLayers.disparity` is, at each pixel, the disparity of the front-most plane whose alpha is
 >= 0.5 there (the background's map where neither foreground reaches 0.5): the depth a
 depth sensor or a matting-free annotation would report.
 """
@@ -15,18 +15,18 @@ from __future__ import annotations
 import mmap
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
 
 from dofsynth.assets import Asset, AssetLibrary
-from dofsynth.planes import Plane, alpha_box
-from dofsynth.scene import ObjectParams, Scene, placed_size
+from dofsynth.image import resize
+from dofsynth.render.planes import Plane, alpha_box
+from dofsynth.scene import ObjectParams, Scene, background_disparity, placed_size
 
 COVER_THRESHOLD = 0.5
 
 
 @dataclass
-class Layers:
+class SceneLayers:
     planes: list[Plane]        # back to front: background (opaque, disparity map), middle, front
     disparity: np.ndarray      # (H, W) float32: front-most plane with alpha >= 0.5
     boxes: list = field(default_factory=list)  # per cutout: (row slice, column slice) of alpha > 0, or None
@@ -55,35 +55,6 @@ class Layers:
     def cover(self) -> np.ndarray:
         """(H, W, 2) float32: (front alpha, middle alpha), made on demand (saves memory)."""
         return np.stack([self.planes[2].alpha, self.planes[1].alpha], axis=2).astype(np.float32)
-
-
-def background_disparity(mode: str, b0: float, b1: float, direction: str | None, h: int, w: int) -> np.ndarray:
-    """(H, W) float32 disparity of the background. "flat": b0 everywhere (0 in sampled scenes);
-    "ramp" + "horizontal": b0 at the left pixel column, linear to b1 at the right column;
-    "ramp" + "vertical": b0 at the bottom pixel row, linear to b1 at the top row."""
-    if mode == "flat":
-        return np.full((h, w), b0, dtype=np.float32)
-    if mode != "ramp":
-        raise ValueError(f"background mode must be 'flat' or 'ramp', got {mode!r}")
-    if direction == "horizontal":
-        t = np.linspace(0.0, 1.0, w) if w > 1 else np.zeros(1)
-        row = b0 + (b1 - b0) * t
-        return np.ascontiguousarray(np.broadcast_to(row[None, :], (h, w)), dtype=np.float32)
-    if direction == "vertical":
-        t = np.linspace(1.0, 0.0, h) if h > 1 else np.zeros(1)  # 1 at the top row, 0 at the bottom
-        col = b0 + (b1 - b0) * t
-        return np.ascontiguousarray(np.broadcast_to(col[:, None], (h, w)), dtype=np.float32)
-    raise ValueError(f"ramp direction must be 'horizontal' or 'vertical', got {direction!r}")
-
-
-def resize(img: np.ndarray, w: int, h: int) -> np.ndarray:
-    """Resize to (h, w): INTER_AREA when shrinking, INTER_LINEAR otherwise (float32 kept)."""
-    sh, sw = img.shape[:2]
-    if (sw, sh) == (w, h):
-        return np.array(img, dtype=np.float32, copy=True)
-    interp = cv2.INTER_AREA if (w <= sw and h <= sh) else cv2.INTER_LINEAR
-    out = cv2.resize(np.ascontiguousarray(img, dtype=np.float32), (w, h), interpolation=interp)
-    return out.reshape(h, w, *img.shape[2:])
 
 
 def background_image(rgb: np.ndarray, crop, flip: bool, h: int, w: int) -> np.ndarray:
@@ -154,14 +125,14 @@ def _alpha_box(alpha: np.ndarray) -> tuple[slice, slice] | None:
     return None if box is None else (slice(box[0], box[1]), slice(box[2], box[3]))
 
 
-def scene_layers(scene: Scene, library: AssetLibrary) -> Layers:
+def scene_layers(scene: Scene, library: AssetLibrary) -> SceneLayers:
     """The planes of `scene` (back to front), its all-in-focus image, disparity and coverages.
 
     The background plane's alpha is a read-only broadcast 1 and its disparity a float (flat) or
     a read-only broadcast of one row or column (ramp): no frame-sized arrays for them. The
     disparity is updated only inside each cutout's alpha box (outside it the cutout has alpha 0
     and changes nothing); the all-in-focus image is composited the same way on access
-    (`Layers.aif`, or `Layers.aif_rows` block by block)."""
+    (`SceneLayers.aif`, or `SceneLayers.aif_rows` block by block)."""
     h, w = scene.size
     bgp = scene.background
     bg_rgb = background_image(library.load_background(_asset(library, scene, "background")), bgp.crop, bgp.flip, h, w)
@@ -189,4 +160,4 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> Layers:
         if box is not None:
             d = disparity[box]
             d[p.alpha[box] >= COVER_THRESHOLD] = p.disparity
-    return Layers(planes=planes, disparity=disparity, boxes=boxes)
+    return SceneLayers(planes=planes, disparity=disparity, boxes=boxes)

@@ -1,9 +1,10 @@
 """Reading and writing the file formats of dofsynth: sRGB images (PNG, JPEG, TIFF, WebP) and
-float32 depth (OpenEXR), to paths and to bytes (for tar shard members).
+float32 images and depth (OpenEXR), to paths and to bytes (for tar shard members).
 
 Images come back as float32 in [0, 1], still sRGB-encoded, shaped (H, W, C) with C in
-{1, 2, 3, 4} in RGB(A) order; `load_linear_rgba` converts to linear light. EXR files are
-taken to hold linear values (images) or normalized disparity (depth).
+{1, 2, 3, 4} in RGB(A) order (`raw=True`: the stored integer codes instead); `load_linear_rgba`
+converts to linear light. EXR files hold linear values (images) or normalized disparity
+(depth). Files are written atomically (dofsynth.files).
 """
 from __future__ import annotations
 
@@ -15,7 +16,9 @@ import cv2
 import numpy as np
 import OpenEXR
 
-from dofsynth.color import srgb_to_linear, to_uint8
+from dofsynth.color import srgb_to_linear
+from dofsynth.files import atomic_write_bytes
+from dofsynth.image import to_uint8
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".exr")
 
@@ -24,7 +27,8 @@ class ImageReadError(ValueError):
     """An image file that cannot be decoded; the message names the file."""
 
 
-def _to_rgb_order(img: np.ndarray) -> np.ndarray:
+def swap_rb(img: np.ndarray) -> np.ndarray:
+    """RGB(A) <-> BGR(A), OpenCV's channel order (a view); grey images as (H, W, 1)."""
     if img.ndim == 2:
         return img[:, :, None]
     if img.shape[2] == 3:
@@ -34,7 +38,8 @@ def _to_rgb_order(img: np.ndarray) -> np.ndarray:
     return img
 
 
-def _normalise(img: np.ndarray, name: str) -> np.ndarray:
+def unit_float(img: np.ndarray, name: str) -> np.ndarray:
+    """Stored codes as float32: uint8 / 255, uint16 / 65535, floats as they are."""
     if img.dtype == np.uint8:
         return img.astype(np.float32) / 255.0
     if img.dtype == np.uint16:
@@ -44,13 +49,18 @@ def _normalise(img: np.ndarray, name: str) -> np.ndarray:
     raise ImageReadError(f"{name}: unsupported pixel type {img.dtype}")
 
 
-def decode_image(data: bytes, name: str = "<bytes>") -> np.ndarray:
-    """Decode PNG/JPEG/TIFF/WebP bytes (8 or 16 bit) to float32 (H, W, C) in [0, 1]."""
+def decode_image(data: bytes, name: str = "<bytes>", raw: bool = False) -> np.ndarray:
+    """Decode PNG/JPEG/TIFF/WebP bytes (8 or 16 bit) to (H, W, C), RGB(A) order: float32 in
+    [0, 1], or with `raw` the stored codes (uint8, uint16 or float) as a contiguous array."""
     buf = np.frombuffer(data, dtype=np.uint8)
-    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    try:
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
+    except cv2.error as exc:
+        raise ImageReadError(f"{name}: not a readable image ({exc})") from exc
     if img is None:
         raise ImageReadError(f"{name}: not a readable image (corrupt, truncated or unknown format)")
-    return _normalise(np.ascontiguousarray(_to_rgb_order(img)), name)
+    img = np.ascontiguousarray(swap_rb(img))
+    return img if raw else unit_float(img, name)
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
@@ -60,12 +70,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         raise FileNotFoundError(f"{path}: no such file")
     if path.suffix.lower() == ".exr":
         return read_exr(path, channels=None)
-    try:
-        return decode_image(path.read_bytes(), str(path))
-    except ImageReadError:
-        raise
-    except Exception as exc:  # cv2 raises plain errors on some malformed files
-        raise ImageReadError(f"{path}: not a readable image ({exc})") from exc
+    return decode_image(path.read_bytes(), str(path))
 
 
 def load_linear_rgba(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
@@ -82,18 +87,22 @@ def load_linear_rgba(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | 
     return np.ascontiguousarray(linear, dtype=np.float32), alpha
 
 
+def encode_png_bgr(bgr: np.ndarray, params=(cv2.IMWRITE_PNG_COMPRESSION, 3)) -> bytes:
+    """PNG bytes of an array already in OpenCV's channel order (grey, BGR or BGRA; uint8 or
+    uint16) with the given cv2.imwrite parameters."""
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(bgr), list(params))
+    if not ok:
+        raise ValueError(f"PNG encoding failed for an array of shape {bgr.shape}")
+    return buf.tobytes()
+
+
 def encode_png(img: np.ndarray, compression: int = 3) -> bytes:
     """Encode an image to PNG bytes. Float input is taken as sRGB-encoded [0, 1] and stored as
     8 bit; uint8 and uint16 are stored as they are. (H, W) or (H, W, C), C in {1, 3, 4}, RGB(A)."""
     arr = np.asarray(img)
     if arr.dtype not in (np.uint8, np.uint16):
         arr = to_uint8(arr)
-    if arr.ndim == 3 and arr.shape[2] in (3, 4):
-        arr = arr[:, :, [2, 1, 0, 3][: arr.shape[2]]] if arr.shape[2] == 4 else arr[:, :, ::-1]
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr), [cv2.IMWRITE_PNG_COMPRESSION, compression])
-    if not ok:
-        raise ValueError(f"PNG encoding failed for an array of shape {arr.shape}")
-    return buf.tobytes()
+    return encode_png_bgr(swap_rb(arr) if arr.ndim == 3 else arr, (cv2.IMWRITE_PNG_COMPRESSION, compression))
 
 
 def encode_exr(image: np.ndarray, channel: str = "Z") -> bytes:
@@ -119,7 +128,7 @@ def decode_exr(data: bytes | io.IOBase, name: str = "<bytes>", channels: str | N
     try:
         f = OpenEXR.File(io.BytesIO(data) if isinstance(data, bytes) else data)
         chans = f.channels()
-    except Exception as exc:
+    except Exception as exc:  # OpenEXR raises plain RuntimeErrors on malformed files
         raise ImageReadError(f"{name}: not a readable EXR file ({exc})") from exc
     if channels is not None:
         if channels not in chans:
@@ -149,18 +158,6 @@ def read_depth(path: str | os.PathLike) -> np.ndarray:
     else:
         img = read_image(path)
     return np.ascontiguousarray(img[:, :, 0], dtype=np.float32)
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write bytes to `path` through a temporary name and a rename: never a half file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def write_png(path: str | os.PathLike, img: np.ndarray) -> None:

@@ -126,7 +126,7 @@ class RangeLock:
                 if not m or p == own.path:
                     continue
                 a, b = int(m[1]), int(m[2])
-                if a < self.stop and self.first < b and _held(p):
+                if a < self.stop and self.first < b and lock_state(p)[0] == "held":
                     raise OutputInUseError(f"{self.out}: --shards {self.first}:{self.stop} overlaps {a}:{b}, which "
                                            f"a running dofsynth run holds ({p.name}); the ranges of one data set "
                                            "must be disjoint")
@@ -146,17 +146,19 @@ class RangeLock:
         self.release()
 
 
-def _held(path: Path) -> bool:
-    """Whether some process holds an exclusive flock on `path`."""
+def lock_state(path: str | os.PathLike) -> tuple[str, str]:
+    """The state of a lock file (`OUT/.lock`, a range lock), without taking it: ("absent", ""),
+    ("stale", "") for a file left by a finished or killed run, or ("held", pid) while a run
+    holds it exclusively (pid as written)."""
     try:
         fd = os.open(path, os.O_RDONLY)
     except FileNotFoundError:
-        return False
+        return "absent", ""
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
         fcntl.flock(fd, fcntl.LOCK_UN)
-        return False
+        return "stale", ""
     except BlockingIOError:
-        return True
+        return "held", os.read(fd, 64).decode(errors="replace").strip()
     finally:
         os.close(fd)

@@ -14,13 +14,14 @@ is written.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
 from pathlib import Path
 
 from dofsynth import __version__
-from dofsynth.io import atomic_write_bytes
+from dofsynth.files import atomic_write_bytes, canonical_json, read_json
 from dofsynth.shards import ShardInfo
 
 MANIFEST_NAME = "manifest.json"
@@ -30,14 +31,6 @@ MANIFEST_SCHEMA_VERSION = 1
 
 class ManifestError(ValueError):
     """A manifest or progress file that is missing, unreadable or inconsistent; names the file."""
-
-
-def canonical_json(obj, indent: int | None = None) -> bytes:
-    """Byte-deterministic JSON: sorted keys, Python's shortest round-trip float repr, no NaN,
-    UTF-8, trailing newline."""
-    text = json.dumps(obj, sort_keys=True, indent=indent, ensure_ascii=False, allow_nan=False,
-                      separators=(",", ": ") if indent is not None else (",", ":"))
-    return (text + "\n").encode("utf-8")
 
 
 def recipe_block(recipe) -> dict:
@@ -107,20 +100,13 @@ def write_manifest(out: str | os.PathLike, manifest: dict) -> Path:
     return path
 
 
-def _read_json(path: Path):
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ManifestError(f"{path}: not valid JSON ({exc})") from exc
-
-
 def load_manifest(out_or_path: str | os.PathLike) -> dict:
     """Read a manifest, given the data set folder or the manifest file itself."""
     p = Path(out_or_path)
     path = p / MANIFEST_NAME if p.is_dir() else p
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no manifest (an unfinished or foreign data set folder?)")
-    data = _read_json(path)
+    data = read_json(path, ManifestError)
     if not isinstance(data, dict) or "splits" not in data or "recipe" not in data:
         raise ManifestError(f"{path}: not a dofsynth manifest (no 'splits' or 'recipe')")
     if data.get("schema_version") != MANIFEST_SCHEMA_VERSION:
@@ -143,8 +129,6 @@ def summary(manifest: dict) -> dict:
     """A short record of a data set for `data_manifest/datasets/`: recipe name/path/sha256 (not
     its text), version, per split limit, samples/shards/bytes and one sha256 over the shard
     hashes (so two data sets compare with one string), and totals."""
-    import hashlib
-
     splits = {}
     for split, block in sorted(manifest["splits"].items()):
         h = hashlib.sha256()
@@ -266,7 +250,7 @@ def load_part(path: str | os.PathLike) -> dict:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such partial manifest")
-    data = _read_json(path)
+    data = read_json(path, ManifestError)
     need = ("schema_version", "dofsynth_version", "recipe", "recipe_samples", "plan", "range", "shards", "extra")
     if not isinstance(data, dict) or any(k not in data for k in need):
         raise ManifestError(f"{path}: not a dofsynth partial manifest (written by generate --shards A:B)")

@@ -1,19 +1,17 @@
-"""One sample as tar members (docs/FORMAT.md): render a scene, encode every file to bytes.
+"""The members of one sample (docs/FORMAT.md) as bytes, and back: the JSON record, the PNG and
+EXR encoders with their fixed settings, and `decode_sample`.
 
-`render_sample(scene, library, recipe)` returns `{suffix: bytes}` for
-`aif.png`, `depth.exr`, `cover.png`, `dof.0.png`, ..., `json`; `decode_sample` turns such a
-dict (or a raw `webdataset` sample) back into arrays. The JSON record is the scene's own
-parameters (`scene.to_dict()`) plus the schema version, renderer id and dofsynth version,
-encoded canonically (sorted keys, Python's shortest round-trip float repr), so a sample is the
-same bytes wherever and whenever it is rendered.
+dofsynth.sample renders a scene into `{suffix: bytes}` for `aif.png`, `depth.exr`,
+`cover.png`, `dof.0.png`, ..., `json` with these encoders; `decode_sample` turns such a dict
+(or a raw `webdataset` sample) back into arrays. The JSON record is the scene's own parameters
+(`scene.to_dict()`) plus the schema version, renderer id and dofsynth version, encoded
+canonically (sorted keys, Python's shortest round-trip float repr), so a sample is the same
+bytes wherever and whenever it is rendered.
 
 What the pixels are:
-- `aif.png`: the all-in-focus composite `layers.aif` (linear), sRGB-encoded, 8 bit, un-boosted
-  (encoded in row blocks, `layers.aif_rows`, before the planes are boosted).
-- `dof.N.png`: `render_planes(planes, focus_N, max_coc_N, aperture)` with each plane's colour
-  highlight-boosted first when the record's `options.highlight` is set; clipped to [0, 1],
-  sRGB-encoded, 8 bit. (With `options.linear_light = false`, the naive baseline, the planes are
-  sRGB-encoded before the blur and the result is stored as it is.)
+- `aif.png`: the all-in-focus composite (linear), sRGB-encoded, 8 bit, un-boosted.
+- `dof.N.png`: target N rendered from the planes (dofsynth.sample); clipped to [0, 1],
+  sRGB-encoded, 8 bit.
 - `depth.exr`: `layers.disparity` float32, channel Z, ZIP (lossless).
 - `cover.png`: R = front plane alpha, G = middle plane alpha, B = 0 (8 bit, not sRGB-encoded).
 
@@ -24,16 +22,15 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import replace
 
 import cv2
 import numpy as np
 
 from dofsynth import __version__
-from dofsynth.aperture import from_dict as aperture_from_dict
-from dofsynth.color import highlight_boost, linear_to_srgb, linear_to_srgb8, to_uint8
-from dofsynth.io import decode_exr, decode_image, encode_exr
-from dofsynth.planes import Plane, alpha_box
+from dofsynth.color import linear_to_srgb8
+from dofsynth.files import canonical_json
+from dofsynth.image import to_uint8
+from dofsynth.io import decode_exr, decode_image, encode_png_bgr, swap_rb
 
 SCHEMA_VERSION = 1
 RENDERER_ID = "layered-v1"
@@ -76,8 +73,7 @@ def _plain(obj):
 
 def encode_record(record: dict) -> bytes:
     """Canonical JSON bytes: sorted keys, compact separators, UTF-8, trailing newline."""
-    text = json.dumps(_plain(record), sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
-    return (text + "\n").encode("utf-8")
+    return canonical_json(_plain(record))
 
 
 def sample_record(scene) -> dict:
@@ -89,31 +85,6 @@ def sample_record(scene) -> dict:
     return _plain(rec)
 
 
-def _highlight(options: dict | None) -> dict | None:
-    """The highlight-boost parameters of a record's `options`, or None when it is off."""
-    h = (options or {}).get("highlight")
-    if not h or (isinstance(h, dict) and h.get("enabled") is False):
-        return None
-    if h is True:
-        return {}
-    keys = ("threshold", "gain", "power")
-    return {k: float(h[k]) for k in keys if k in h}
-
-
-def boosted_planes(planes, highlight: dict | None) -> list[Plane]:
-    """Planes with `color.highlight_boost` applied to their colour (unchanged when None)."""
-    if highlight is None:
-        return list(planes)
-    return [replace(p, rgb=highlight_boost(p.rgb, **highlight)) for p in planes]
-
-
-def _encode_bgr(bgr: np.ndarray, params) -> bytes:
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(bgr), list(params))
-    if not ok:
-        raise ValueError(f"PNG encoding failed for an array of shape {bgr.shape}")
-    return buf.tobytes()
-
-
 def encode_png8(img: np.ndarray) -> bytes:
     """(H, W, 3) values in [0, 1] (or uint8) -> 8-bit RGB PNG bytes with PNG_PARAMS."""
     arr = np.asarray(img)
@@ -121,7 +92,7 @@ def encode_png8(img: np.ndarray) -> bytes:
         arr = to_uint8(arr)
     if arr.ndim != 3 or arr.shape[2] != 3:
         raise ValueError(f"PNG member must be (H, W, 3), got shape {arr.shape}")
-    return _encode_bgr(cv2.cvtColor(np.ascontiguousarray(arr), cv2.COLOR_RGB2BGR), PNG_PARAMS)
+    return encode_png_bgr(swap_rb(arr), PNG_PARAMS)
 
 
 def encode_srgb_png(linear: np.ndarray) -> bytes:
@@ -140,7 +111,7 @@ def encode_srgb_png_rows(rows, h: int, w: int) -> bytes:
     for r0 in range(0, h, _ROWS):
         r1 = min(r0 + _ROWS, h)
         bgr[r0:r1] = linear_to_srgb8(rows(r0, r1))[:, :, ::-1]
-    return _encode_bgr(bgr, PNG_PARAMS)
+    return encode_png_bgr(bgr, PNG_PARAMS)
 
 
 _ROWS = 64  # rows per block of the sRGB encode
@@ -161,7 +132,7 @@ def encode_srgb_png_planar(linear: np.ndarray) -> bytes:
         for ch in range(3):
             linear_to_srgb8(linear[ch, r0:r1], out=codes[: r1 - r0])
             bgr[r0:r1, :, 2 - ch] = codes[: r1 - r0]
-    return _encode_bgr(bgr, PNG_PARAMS)
+    return encode_png_bgr(bgr, PNG_PARAMS)
 
 
 def encode_cover(cover: np.ndarray) -> bytes:
@@ -181,62 +152,7 @@ def encode_alphas(front: np.ndarray, middle: np.ndarray) -> bytes:
     for r in range(0, front.shape[0], 128):  # row blocks: small, cache-resident temporaries
         bgr[r:r + 128, :, 2] = to_uint8(front[r:r + 128])
         bgr[r:r + 128, :, 1] = to_uint8(middle[r:r + 128])
-    return _encode_bgr(bgr, COVER_PNG_PARAMS)
-
-
-def render_sample(scene, library, recipe) -> dict[str, bytes]:
-    """Render one scene to its tar members {suffix: bytes} (see the module docstring).
-
-    Targets, aperture and highlight option are read from the scene's own record, so a sample
-    can be re-rendered from its JSON alone; the recipe's `render.highlight` is the fallback when
-    the record has no `options.highlight`.
-    """
-    from dofsynth.compose import scene_layers  # imported here: compose pulls in the asset code
-    from dofsynth.render import render_planes
-
-    record = sample_record(scene)
-    layers = scene_layers(scene, library)
-    planes = list(layers.planes)
-    aperture = aperture_from_dict(record.get("aperture") or {"kind": "disk"})
-    options = record.get("options")
-    if not isinstance(options, dict) or "highlight" not in options:  # the scene did not record it
-        h = recipe.render.highlight
-        options = {"highlight": {"threshold": h.threshold, "gain": h.gain, "power": h.power} if h.enabled else None}
-    linear_light = bool(options.get("linear_light", recipe.render.linear_light))
-    # Encode the un-blurred members first and drop their arrays (peak memory at large sizes).
-    members: dict[str, bytes] = {
-        "aif.png": encode_srgb_png_rows(layers.aif_rows, *layers.disparity.shape),
-        "depth.exr": encode_exr(np.asarray(layers.disparity, dtype=np.float32)),
-        "cover.png": encode_alphas(planes[2].alpha, planes[1].alpha),
-    }
-    del layers
-    highlight = _highlight(options)
-    if linear_light and highlight is not None and all(p.rgb.flags.writeable for p in planes):
-        # the planes are this call's own fresh arrays: boost in place (no frame-sized copies)
-        for i, p in enumerate(planes):
-            rgb = p.rgb
-            if i > 0:  # a cutout's colour is 0 outside its alpha box (searched for if not given)
-                box = p.box if p.box is not None else alpha_box(p.alpha)
-                if box is None or box[1] <= box[0] or box[3] <= box[2]:
-                    continue
-                rgb = rgb[box[0]:box[1], box[2]:box[3]]
-            highlight_boost(rgb, **highlight, out=rgb)
-        blur_planes = planes
-    else:
-        blur_planes = boosted_planes(planes, highlight)
-    if not linear_light:  # the naive baseline: blur sRGB-encoded values, store them as they are
-        blur_planes = [replace(p, rgb=linear_to_srgb(p.rgb)) for p in blur_planes]
-    del planes
-    for n, t in enumerate(record["targets"]):
-        if linear_light:  # planar (3, H, W): encoded in row blocks, no interleaved frame copy
-            img = render_planes(blur_planes, float(t["focus"]), float(t["max_coc"]), aperture, planar=True)
-            members[f"dof.{n}.png"] = encode_srgb_png_planar(img)
-        else:
-            img = render_planes(blur_planes, float(t["focus"]), float(t["max_coc"]), aperture)
-            members[f"dof.{n}.png"] = encode_png8(np.clip(img, 0.0, 1.0))
-        del img
-    members["json"] = encode_record(record)
-    return members
+    return encode_png_bgr(bgr, COVER_PNG_PARAMS)
 
 
 def decode_sample(members: dict[str, bytes], key: str | None = None) -> dict:

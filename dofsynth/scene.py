@@ -1,10 +1,10 @@
 """Scene sampling: every random choice of one sample, as pure data (no pixels).
 
-`sample_scene(recipe, library, split, index)` draws from its own generator
-`default_rng(SeedSequence([recipe.seed, SPLIT_ID[split], index]))`, so sample k is the same
-whether drawn alone or in a loop, on any machine. The `Scene` it returns is everything a
-renderer needs besides the asset pixels; `Scene.to_dict()` is the JSON sample record's scene part
-(docs/FORMAT.md) and `Scene.from_dict` reads it back exactly.
+`sample_scene(recipe, library, split, index)` draws from the sample's own generator
+(dofsynth.rng: `default_rng(SeedSequence([recipe.seed, SPLIT_ID[split], index]))`), so sample
+k is the same whether drawn alone or in a loop, on any machine. The `Scene` it returns is
+everything a renderer needs besides the asset pixels; `Scene.to_dict()` is the JSON sample
+record's scene part (docs/FORMAT.md) and `Scene.from_dict` reads it back exactly.
 
 Depth rules (normalized disparity, 1 = nearest): the background is flat (0 everywhere) or a
 ramp from b0 at the near edge to b1 < b0 at the far edge ("horizontal": b0 at the left edge;
@@ -19,15 +19,17 @@ of its area inside the frame.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
 from dofsynth.assets import Asset, AssetLibrary
-from dofsynth.config import Recipe
+from dofsynth.optics.aperture import APERTURES, Aperture, aperture_from_dict
+from dofsynth.recipe import Recipe
+from dofsynth.rng import draw_uniform, sample_key, sample_rng, sample_seed
 
-SPLIT_ID = {"train": 0, "test": 1}
 _PLACE_TRIES = 64
 
 
@@ -64,18 +66,6 @@ class Target:
 
 
 @dataclass(frozen=True)
-class Aperture:
-    kind: str                       # "disk" | "polygon"
-    blades: int | None = None
-    rotation: float | None = None   # degrees
-
-    def to_dict(self) -> dict[str, Any]:
-        if self.kind == "disk":
-            return {"kind": "disk"}
-        return {"kind": self.kind, "blades": self.blades, "rotation": self.rotation}
-
-
-@dataclass(frozen=True)
 class Highlight:
     threshold: float
     gain: float
@@ -100,7 +90,7 @@ class Scene:
     front: ObjectParams
     middle: ObjectParams
     targets: tuple[Target, ...]
-    aperture: Aperture
+    aperture: Aperture              # a kind of dofsynth.optics.aperture (its own to_dict in the record)
     options: Options
 
     def to_dict(self) -> dict[str, Any]:
@@ -120,7 +110,6 @@ class Scene:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Scene":
         """Inverse of `to_dict`; extra record keys (schema_version, renderer, ...) are ignored."""
-        ap = d["aperture"]
         hl = d["options"].get("highlight")
         return cls(
             key=d["key"], split=d["split"], index=int(d["index"]), seed=tuple(int(s) for s in d["seed"]),
@@ -129,14 +118,10 @@ class Scene:
             background=BackgroundParams(**{**d["background"], "crop": tuple(int(v) for v in d["background"]["crop"])}),
             front=ObjectParams(**d["front"]), middle=ObjectParams(**d["middle"]),
             targets=tuple(Target(**t) for t in d["targets"]),
-            aperture=Aperture(kind=ap["kind"], blades=ap.get("blades"), rotation=ap.get("rotation")),
+            aperture=aperture_from_dict(d["aperture"]),
             options=Options(highlight=Highlight(**hl) if hl else None,
                             linear_light=bool(d["options"].get("linear_light", True))),
         )
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self.size
 
 
 def placed_size(scale: float, extent_w: int, extent_h: int) -> tuple[int, int]:
@@ -150,9 +135,27 @@ def in_frame_share(x: int, y: int, w: int, h: int, frame_w: int, frame_h: int) -
     return vis_w * vis_h / float(w * h)
 
 
-def _ref(asset: Asset, recipe: Recipe) -> AssetRef:
-    import os
+def background_disparity(mode: str, b0: float, b1: float, direction: str | None, h: int, w: int) -> np.ndarray:
+    """(H, W) float32 disparity of the background. "flat": b0 everywhere (0 in sampled scenes);
+    "ramp" + "horizontal": b0 at the left pixel column, linear to b1 at the right column;
+    "ramp" + "vertical": b0 at the bottom pixel row, linear to b1 at the top row. (A ramp of
+    h = 1 or w = 1 is its row or column: what a broadcast plane holds.)"""
+    if mode == "flat":
+        return np.full((h, w), b0, dtype=np.float32)
+    if mode != "ramp":
+        raise ValueError(f"background mode must be 'flat' or 'ramp', got {mode!r}")
+    if direction == "horizontal":
+        t = np.linspace(0.0, 1.0, w) if w > 1 else np.zeros(1)
+        row = b0 + (b1 - b0) * t
+        return np.ascontiguousarray(np.broadcast_to(row[None, :], (h, w)), dtype=np.float32)
+    if direction == "vertical":
+        t = np.linspace(1.0, 0.0, h) if h > 1 else np.zeros(1)  # 1 at the top row, 0 at the bottom
+        col = b0 + (b1 - b0) * t
+        return np.ascontiguousarray(np.broadcast_to(col[:, None], (h, w)), dtype=np.float32)
+    raise ValueError(f"ramp direction must be 'horizontal' or 'vertical', got {direction!r}")
 
+
+def _ref(asset: Asset, recipe: Recipe) -> AssetRef:
     path = asset.path
     if not path.startswith("builtin:") and recipe.base_dir:
         path = os.path.relpath(path, recipe.base_dir).replace(os.sep, "/")
@@ -161,7 +164,7 @@ def _ref(asset: Asset, recipe: Recipe) -> AssetRef:
 
 def _place(rng: np.random.Generator, asset: Asset, disparity: float, recipe: Recipe) -> ObjectParams:
     H, W = recipe.frame
-    rules = recipe.foreground
+    rules = recipe.scene.foreground
     _, _, ew, eh = asset.extent
     long_px = float(rng.uniform(*rules.scale)) * min(H, W)
     scale = long_px / max(ew, eh)
@@ -181,18 +184,10 @@ def _place(rng: np.random.Generator, asset: Asset, disparity: float, recipe: Rec
     return ObjectParams(disparity=float(disparity), scale=float(scale), x=x, y=y, flip=flip)
 
 
-def _uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
-    return float(lo if hi <= lo else rng.uniform(lo, hi))
-
-
 def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int) -> Scene:
     """Draw every random choice of sample `index` of `split` (pure data, deterministic)."""
-    if split not in SPLIT_ID:
-        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
-    if index < 0:
-        raise ValueError(f"index must be >= 0, got {index}")
-    seed = (int(recipe.seed), SPLIT_ID[split], int(index))
-    rng = np.random.default_rng(np.random.SeedSequence(list(seed)))
+    seed = sample_seed(recipe.seed, split, index)
+    rng = sample_rng(seed)
     H, W = recipe.frame
     bgs, fgs = library.assets_for("background", split), library.assets_for("foreground", split)
     if not bgs or len(fgs) < 2:
@@ -205,19 +200,19 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int) 
         cw_max, ch_max = sh * W / H, float(sh)
     else:
         cw_max, ch_max = float(sw), sw * H / W
-    c = float(rng.uniform(*recipe.background.crop))
+    br, fr = recipe.scene.background, recipe.scene.foreground
+    c = float(rng.uniform(*br.crop))
     cw, ch = max(1, min(sw, round(cw_max * c))), max(1, min(sh, round(ch_max * c)))
     cx, cy = int(rng.integers(0, sw - cw + 1)), int(rng.integers(0, sh - ch + 1))
-    bflip = bool(rng.random() < recipe.foreground.flip_share)
+    bflip = bool(rng.random() < fr.flip_share)
 
     # 2. background depth
-    br = recipe.background
     if rng.random() < br.flat_share:
         mode, b0, b1, direction = "flat", 0.0, 0.0, None
     else:
         mode = "ramp"
-        b0 = _uniform(rng, *br.b0)
-        b1 = _uniform(rng, br.b1[0], min(br.b1[1], b0))
+        b0 = draw_uniform(rng, *br.b0)
+        b1 = draw_uniform(rng, br.b1[0], min(br.b1[1], b0))
         if b1 >= b0:  # only when the ranges touch; keep a strict ramp
             b1 = max(0.0, b0 - 1e-3)
         direction = "vertical" if rng.random() < br.vertical_share else "horizontal"
@@ -225,9 +220,8 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int) 
                                   crop=(cx, cy, cw, ch), flip=bflip)
 
     # 3. foreground planes: middle in front of the background, front in front of the middle
-    fr = recipe.foreground
-    f1 = _uniform(rng, max(fr.f1[0], b0 + fr.min_gap), fr.f1[1])
-    f0 = _uniform(rng, max(fr.f0[0], f1 + fr.min_gap), fr.f0[1])
+    f1 = draw_uniform(rng, max(fr.f1[0], b0 + fr.min_gap), fr.f1[1])
+    f0 = draw_uniform(rng, max(fr.f0[0], f1 + fr.min_gap), fr.f0[1])
 
     # 4. foreground assets (distinct) and placement
     i = int(rng.integers(len(fgs)))
@@ -243,23 +237,20 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int) 
     for _ in range(fo.targets_per_scene):
         if rng.random() < fo.plane_share:
             plane = int(rng.integers(3))  # 0 background (a point of the ramp), 1 middle, 2 front
-            focus = _uniform(rng, b1, b0) if plane == 0 else (f1 if plane == 1 else f0)
+            focus = draw_uniform(rng, b1, b0) if plane == 0 else (f1 if plane == 1 else f0)
         else:
             focus = float(rng.uniform(0.0, 1.0))
-        targets.append(Target(focus=float(focus), max_coc=_uniform(rng, *fo.max_coc)))
+        targets.append(Target(focus=float(focus), max_coc=draw_uniform(rng, *fo.max_coc)))
 
     # 6. aperture and options
     ar = recipe.render.aperture
-    if ar.kind == "disk":
-        aperture = Aperture("disk")
-    else:
-        aperture = Aperture("polygon", blades=ar.blades, rotation=_uniform(rng, *ar.rotation))
+    aperture = APERTURES[ar.kind].from_rules(ar, rng)
     hr = recipe.render.highlight
     options = Options(highlight=Highlight(hr.threshold, hr.gain, hr.power) if hr.enabled else None,
                       linear_light=recipe.render.linear_light)
 
     return Scene(
-        key=f"{split}-{index:07d}", split=split, index=int(index), seed=seed, size=(H, W),
+        key=sample_key(split, index), split=split, index=int(index), seed=seed, size=(H, W),
         assets={"background": _ref(bg, recipe), "front": _ref(front_asset, recipe),
                 "middle": _ref(middle_asset, recipe)},
         background=background, front=front, middle=middle, targets=tuple(targets),

@@ -11,9 +11,10 @@ just as deterministic (mtime=0, user="", group="") but importing `webdataset` im
 (about 2 s and 300 MB per spawned worker), and torch stays out of the generation path. The
 tests read our shards back with `webdataset.WebDataset`.
 
-A shard is written to `OUT/<split>/.<name>.tmp-<pid>` and renamed (`os.replace`, atomic on
-one file system) to `OUT/<split>/<name>` only when complete and fsync'ed: a file under a final
-name is always a whole shard.
+A shard is written under its temp name (dofsynth.files: `OUT/<split>/.<name>.tmp-<pid>`) and
+renamed to `OUT/<split>/<name>` only when complete and fsync'ed: a file under a final name is
+always a whole shard. Every read of a shard goes through `iter_members`, which checks each
+member's length and the end-of-archive marker and names the file in a `ShardError`.
 """
 from __future__ import annotations
 
@@ -26,8 +27,10 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
 
+from dofsynth.files import AtomicFile
+from dofsynth.rng import sample_key
+
 TAR_MODE = 0o444
-TEMP_MARK = ".tmp-"  # temp files are ".<final name>.tmp-<pid>"
 _KEY_RE = re.compile(r"^[A-Za-z0-9_-]+$")
 
 
@@ -67,23 +70,9 @@ class ShardInfo:
                    sha256=str(d["sha256"]), bytes=int(d["bytes"]))
 
 
-def sample_key(split: str, index: int) -> str:
-    """The sample key of FORMAT.md: "<split>-<index:07d>"."""
-    return f"{split}-{index:07d}"
-
-
 def shard_name(split: str, shard_index: int) -> str:
     """"<split>-<shard_index:06d>.tar"."""
     return f"{split}-{shard_index:06d}.tar"
-
-
-def temp_path(final: Path) -> Path:
-    """The temporary name a shard (or any file) is written under before its rename."""
-    return final.with_name(f".{final.name}{TEMP_MARK}{os.getpid()}")
-
-
-def is_temp_name(name: str) -> bool:
-    return name.startswith(".") and (TEMP_MARK in name or ".tmp" in name)
 
 
 def member_sort_key(suffix: str) -> tuple:
@@ -132,10 +121,9 @@ class ShardWriter:
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = temp_path(self.path)
-        self._fh = open(self.tmp, "wb")
-        self._hf = _HashingFile(self._fh)
+        self._file = AtomicFile(self.path)
+        self.tmp = self._file.tmp
+        self._hf = _HashingFile(self._file.file)
         self._tar = tarfile.open(fileobj=self._hf, mode="w|", format=tarfile.USTAR_FORMAT)
         self.samples = 0
         self.sha256: str | None = None
@@ -165,10 +153,7 @@ class ShardWriter:
         if self.sha256 is not None:
             return self.samples, self.sha256, self.bytes
         self._tar.close()
-        self._fh.flush()
-        os.fsync(self._fh.fileno())
-        self._fh.close()
-        os.replace(self.tmp, self.path)
+        self._file.commit()
         self.sha256, self.bytes = self._hf.sha.hexdigest(), self._hf.nbytes
         return self.samples, self.sha256, self.bytes
 
@@ -176,12 +161,9 @@ class ShardWriter:
         """Drop the half-written temp file."""
         try:
             self._tar.close()  # so its stream does not write again at garbage collection
-        except Exception:
+        except (OSError, tarfile.TarError, ValueError):
             pass
-        try:
-            self._fh.close()
-        finally:
-            self.tmp.unlink(missing_ok=True)
+        self._file.abort()
 
     def __enter__(self) -> "ShardWriter":
         return self
@@ -202,16 +184,6 @@ def write_shard(path: str | os.PathLike, samples: Iterable[tuple[str, dict[str, 
     return w.samples, w.sha256, w.bytes
 
 
-def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> tuple[str, int]:
-    """(sha256 hex, size in bytes) of a file."""
-    h, n = hashlib.sha256(), 0
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            h.update(block)
-            n += len(block)
-    return h.hexdigest(), n
-
-
 def _check_end(path: Path, offset: int) -> None:
     """A whole tar ends with two zero blocks after its last member; `tarfile` accepts a file cut
     at a member boundary as a shorter archive, so check for them."""
@@ -222,57 +194,48 @@ def _check_end(path: Path, offset: int) -> None:
         raise ShardError(f"{path}: truncated tar (no end-of-archive marker after the last member)")
 
 
-def read_shard(path: str | os.PathLike) -> Iterator[tuple[str, dict[str, bytes]]]:
-    """Yield (key, {suffix: bytes}) per sample in file order; `ShardError` names a bad file."""
+def iter_members(path: str | os.PathLike, keys=None, data: bool = True) -> Iterator[tuple[str, str, bytes | None]]:
+    """(key, suffix, bytes) of every regular member of a shard in file order; with `keys`,
+    only the members of those samples (the others' data is skipped, not read); with
+    `data=False`, None instead of the bytes (headers only). `ShardError` names a bad file."""
     path = Path(path)
-    current, members = None, {}
     try:
         with tarfile.open(path, "r:") as tar:
             for info in tar:
                 if not info.isfile():
                     continue
                 key, _, suffix = info.name.rsplit("/", 1)[-1].partition(".")
-                if current is not None and key != current:
-                    yield current, members
-                    members = {}
-                current = key
-                data = tar.extractfile(info).read()
-                if len(data) != info.size:
-                    raise ShardError(f"{path}: member {info.name} is truncated")
-                members[suffix] = data
+                if keys is not None and key not in keys:
+                    continue
+                blob = None
+                if data:
+                    blob = tar.extractfile(info).read()
+                    if len(blob) != info.size:
+                        raise ShardError(f"{path}: member {info.name} is truncated")
+                yield key, suffix, blob
             end = tar.offset
     except (tarfile.TarError, EOFError, OSError) as exc:
         raise ShardError(f"{path}: unreadable tar ({exc})") from exc
     _check_end(path, end)
+
+
+def read_shard(path: str | os.PathLike, keys=None) -> Iterator[tuple[str, dict[str, bytes]]]:
+    """Yield (key, {suffix: bytes}) per sample in file order (only `keys`, if given)."""
+    current, members = None, {}
+    for key, suffix, blob in iter_members(path, keys):
+        if current is not None and key != current:
+            yield current, members
+            members = {}
+        current = key
+        members[suffix] = blob
     if current is not None:
         yield current, members
 
 
 def shard_keys(path: str | os.PathLike) -> list[str]:
     """Sample keys of a shard in file order (reads headers only, not the member data)."""
-    path = Path(path)
     keys: list[str] = []
-    try:
-        with tarfile.open(path, "r:") as tar:
-            for info in tar:
-                key = info.name.rsplit("/", 1)[-1].partition(".")[0]
-                if not keys or keys[-1] != key:
-                    keys.append(key)
-            end = tar.offset
-    except (tarfile.TarError, EOFError, OSError) as exc:
-        raise ShardError(f"{path}: unreadable tar ({exc})") from exc
-    _check_end(path, end)
+    for key, _, _ in iter_members(path, data=False):
+        if not keys or keys[-1] != key:
+            keys.append(key)
     return keys
-
-
-def remove_temp_files(folder: str | os.PathLike) -> list[Path]:
-    """Delete leftover temporary files (".<name>.tmp-<pid>", ".<name>.tmp<pid>") directly in
-    `folder`; returns what was removed. Call only while holding the folder's lock."""
-    folder = Path(folder)
-    removed = []
-    if folder.is_dir():
-        for p in sorted(folder.iterdir()):
-            if p.is_file() and is_temp_name(p.name):
-                p.unlink(missing_ok=True)
-                removed.append(p)
-    return removed

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-# `dofsynth generate --workers 1` tunes malloc for the process it runs in (executors.tune_malloc):
+# `dofsynth generate --workers 1` tunes malloc for the process it runs in (generate.worker.setup_process):
 # not for the test processes, which call the CLI in-process and live on (nor their workers).
 os.environ.setdefault("DOFSYNTH_WORKER_MALLOC", "default")
 
@@ -150,7 +150,7 @@ def write_recipe(tmp_path):
 
 @pytest.fixture(scope="session")
 def smoke_recipe():
-    from dofsynth.config import load_recipe
+    from dofsynth.recipe import load_recipe
 
     return load_recipe(ROOT / "recipes" / "smoke.toml")
 
@@ -164,7 +164,7 @@ def smoke_library(smoke_recipe):
 
 @pytest.fixture(scope="session")
 def demo_recipe():
-    from dofsynth.config import load_recipe
+    from dofsynth.recipe import load_recipe
 
     return load_recipe(ROOT / "recipes" / "demo.toml")
 
@@ -183,7 +183,7 @@ def smoke_set(tmp_path_factory, smoke_recipe) -> Path:
 def _brute_coverage(aperture, radius, sub=64):
     """Independent reference kernel: point-in-shape tests on sub x sub points per pixel
     (area of the aperture of `radius` px inside each pixel, unnormalized)."""
-    from dofsynth.aperture import support_radius
+    from dofsynth.optics import support_radius
 
     s = support_radius(radius)
     n = 2 * s + 1

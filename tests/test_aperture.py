@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from dofsynth.aperture import Disk, Polygon, coverage, from_dict, kernel, parse_aperture, support_radius
+from dofsynth.optics import APERTURES, Disk, Polygon, aperture_from_dict, coverage, kernel, parse_aperture, support_radius
+from dofsynth.recipe import ApertureRules
 
 
 def embed(k, n):
@@ -35,7 +36,7 @@ def test_polygon_area_and_brute_force(blades, rotation, brute_coverage):
 def test_coverage_is_the_midpoint_rule_summed_directly(ap):
     """coverage() sums the clipped chords with cumulative sums over the pixel edges; the same
     midpoint rule written out per (row, sub-column) gives the same areas."""
-    from dofsynth.aperture import X_SUBSAMPLES
+    from dofsynth.optics.kernel import X_SUBSAMPLES
 
     for r in [0.5, 0.7, 1.49, 2.3, 5.5, 12.25, 31.9, 64.0, 129.3]:
         s = support_radius(r)
@@ -53,37 +54,37 @@ def test_polygon_symmetry():
     r = 7.2
     # N-fold: turning the polygon by 360/N degrees gives the same shape.
     for n in (5, 6, 7):
-        a, b = Polygon(n, 10.0).kernel(r), Polygon(n, 10.0 + 360.0 / n).kernel(r)
+        a, b = kernel(Polygon(n, 10.0), r), kernel(Polygon(n, 10.0 + 360.0 / n), r)
         np.testing.assert_allclose(a, b, atol=1e-6)
     # Where the grid allows it, the kernel itself has the symmetry.
     for n, rot in ((4, 45.0), (4, 0.0), (8, 22.5)):
-        k = Polygon(n, rot).kernel(r)
+        k = kernel(Polygon(n, rot), r)
         np.testing.assert_allclose(np.rot90(k), k, atol=1e-4)  # x midpoint rule
-    k6 = Polygon(6, 0.0).kernel(r)
+    k6 = kernel(Polygon(6, 0.0), r)
     np.testing.assert_allclose(k6[::-1, ::-1], k6, atol=1e-6)
     # The inertia of a regular polygon is isotropic (any N >= 3).
-    k5 = Polygon(5, 13.0).kernel(12.0).astype(np.float64)
+    k5 = kernel(Polygon(5, 13.0), 12.0).astype(np.float64)
     s = k5.shape[0] // 2
     y, x = np.mgrid[-s : s + 1, -s : s + 1]
     assert (k5 * x * x).sum() == pytest.approx((k5 * y * y).sum(), rel=5e-3)
     assert abs((k5 * x * y).sum()) < 5e-3 * (k5 * x * x).sum()
     # A triangle is not centrally symmetric, so the sign of the radius matters.
-    k3 = Polygon(3).kernel(5.0)
+    k3 = kernel(Polygon(3), 5.0)
     assert np.abs(k3 - k3[::-1, ::-1]).max() > 0.01
 
 
 @pytest.mark.parametrize("ap", [Disk(), Polygon(3), Polygon(5, 30.0)])
 def test_negative_radius_is_point_reflection(ap):
     for r in (0.8, 3.3, 6.0):
-        np.testing.assert_array_equal(ap.kernel(-r), ap.kernel(r)[::-1, ::-1])
+        np.testing.assert_array_equal(kernel(ap, -r), kernel(ap, r)[::-1, ::-1])
 
 
 @pytest.mark.parametrize("ap", [Disk(), Polygon(6, 5.0)])
 def test_normalized_and_identity_below_half_pixel(ap):
     for r in (0.0, 0.2, -0.3, 0.4999):
-        np.testing.assert_array_equal(ap.kernel(r), np.ones((1, 1), np.float32))
+        np.testing.assert_array_equal(kernel(ap, r), np.ones((1, 1), np.float32))
     for r in (0.6, 2.0, 3.0, 10.4):
-        k = ap.kernel(r)
+        k = kernel(ap, r)
         assert k.dtype == np.float32 and k.sum() == pytest.approx(1.0, abs=1e-5)
 
 
@@ -93,23 +94,32 @@ def test_kernel_continuous_in_radius(ap):
     for lo, hi in ((0.45, 0.55), (1.45, 1.55), (2.9, 3.1), (3.45, 3.55)):
         rs = np.linspace(lo, hi, 101)
         n = 2 * support_radius(hi) + 1
-        ks = [embed(ap.kernel(float(r)), n) for r in rs]
+        ks = [embed(kernel(ap, float(r)), n) for r in rs]
         steps = [np.abs(b - a).max() for a, b in zip(ks, ks[1:])]
         # Each step is 1/1000 of a pixel; the largest kernel change must be of that order.
         assert max(steps) < 5e-3, (lo, hi, max(steps))
 
 
+def test_the_registry_is_what_recipes_records_and_the_command_line_accept():
+    """A kind is one class: the recipe's choices, the record's kinds and the parser all take it."""
+    assert set(APERTURES) == {"disk", "polygon"}
+    assert ApertureRules.__dataclass_fields__["kind"].metadata["dofsynth"].choices == tuple(APERTURES)
+    for kind, cls in APERTURES.items():
+        assert parse_aperture(kind if kind == "disk" else f"{kind}:6") == aperture_from_dict({"kind": kind})
+        assert cls.from_rules(ApertureRules(kind=kind, rotation=(10.0, 10.0)), None).kind == kind
+
+
 def test_dict_round_trip_and_parsing():
     for ap in (Disk(), Polygon(6), Polygon(7, 12.5)):
         d = json.loads(json.dumps(ap.to_dict()))
-        assert from_dict(d) == ap and type(ap).from_dict(d) == ap
+        assert aperture_from_dict(d) == ap
     assert Disk().to_dict() == {"kind": "disk"}
     assert Polygon(6).to_dict() == {"kind": "polygon", "blades": 6, "rotation": 0.0}
     assert parse_aperture("disk") == Disk()
     assert parse_aperture("polygon:5:30") == Polygon(5, 30.0)
     for bad in ({"kind": "star"}, "disk", {}):
         with pytest.raises(ValueError, match="aperture"):
-            from_dict(bad)
+            aperture_from_dict(bad)
     for bad in ("hexagon", "polygon:2", "polygon:x"):
         with pytest.raises(ValueError, match="aperture"):
             parse_aperture(bad)

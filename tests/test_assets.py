@@ -6,12 +6,14 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from dofsynth import builtin_assets as B
-from dofsynth.assets import (Asset, AssetError, AssetLibrary, assign_splits, build_library, builtin_assets,
-                             read_sources_licences)
+from dofsynth.assets import builtin as B
+from dofsynth.assets import Asset, AssetError, AssetLibrary, build_library
+from dofsynth.assets.builtin import builtin_assets
+from dofsynth.assets.pins import pin_folder
+from dofsynth.assets.scan import read_sources_licences
+from dofsynth.assets.splits import assign_splits
 from dofsynth.cli import main as cli_main
-from dofsynth.commands.assets import scan_folder
-from dofsynth.config import load_recipe
+from dofsynth.recipe import load_recipe
 from dofsynth.io import read_image
 
 from conftest import blob_alpha, noise_rgb, write_png
@@ -254,7 +256,7 @@ def test_scan_command_writes_a_manifest(tmp_path, tiny_bg_dir, capsys):
 
 
 def test_scan_reads_licences_from_sources_md(shared_assets, tmp_path):
-    doc = scan_folder(shared_assets, tmp_path, progress=False)
+    doc = pin_folder(shared_assets, tmp_path, progress=False)
     files = {f["path"]: f for f in doc["files"]}
     assert files["alpha/rembg_car-2.png"]["kind"] == "alpha"
     assert files["fg/rembg_car-2.jpg"]["kind"] == "foreground"

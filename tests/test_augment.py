@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from dofsynth.augment import (Layers, apply_corruption, background_disparity, corrupt_disparity,
+from dofsynth.train.augment import (DepthLayers, apply_corruption, record_background, corrupt_disparity,
                               layers_from_record, morph_mask, sample_corruption)
 from dofsynth.train.config import AugmentConfig
 
@@ -25,7 +25,7 @@ def scene():
     front[2:6, 2:6] = True
     d = np.full((H, W), BG, np.float32)
     d[mid], d[front] = MID, FRONT
-    return d, Layers(np.full((H, W), BG, np.float32), ((mid, MID), (front, FRONT)))
+    return d, DepthLayers(np.full((H, W), BG, np.float32), ((mid, MID), (front, FRONT)))
 
 
 def params(**kw):
@@ -133,10 +133,10 @@ def test_layers_from_a_record_and_its_cover_image():
     assert (dm, df) == (0.6, 0.9) and front.sum() == 1 and front[0, 0] and mid.sum() == 1 and mid[1, 1]
     bg = layers.background          # vertical: b0 at the bottom edge, b1 at the top edge
     assert np.allclose(bg[:, 0], [0.4, 0.4 * 2 / 3, 0.4 / 3, 0.0]) and np.allclose(bg[0], 0.4)
-    horiz = background_disparity({"background": {"mode": "ramp", "b0": 0.0, "b1": 0.4,
+    horiz = record_background({"background": {"mode": "ramp", "b0": 0.0, "b1": 0.4,
                                                  "direction": "horizontal"}}, (2, 4))
     assert np.allclose(horiz[0], [0.0, 0.4 / 3, 0.4 * 2 / 3, 0.4])
     with pytest.raises(ValueError, match="mode"):
-        background_disparity({"background": {"mode": "spiral", "b0": 0.1}}, (2, 2))
+        record_background({"background": {"mode": "spiral", "b0": 0.1, "b1": 0.0}}, (2, 2))
     with pytest.raises(ValueError, match="morphology"):
         morph_mask(np.ones((3, 3), bool), "open", 3)

@@ -5,7 +5,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dofsynth.color import (SRGB8_THRESHOLDS, SRGB8_TO_LINEAR, highlight_boost, linear_to_srgb, linear_to_srgb8,
-                            srgb8_to_linear, srgb_to_linear, to_uint8)
+                            srgb8_to_linear, srgb_to_linear)
+from dofsynth.image import to_uint8
 
 
 def srgb_encode64(x):

@@ -11,9 +11,10 @@ from pathlib import Path
 import pytest
 
 from dofsynth.cli import main
-from dofsynth.config import load_recipe, recipe_from_text
-from dofsynth.generate import (OutputNotEmptyError, ResumeError, generate, generate_shard, plan_split, render_one,
-                               shard_task, _library_for)
+from dofsynth.recipe import load_recipe, recipe_from_text
+from dofsynth.generate import OutputNotEmptyError, ResumeError, generate, generate_shard, plan_split, render_one
+from dofsynth.generate.plan import shard_task
+from dofsynth.generate.worker import library_for
 from dofsynth.locks import OutputInUseError, OutputLock
 from dofsynth.manifest import load_manifest
 from dofsynth.shards import read_shard
@@ -81,21 +82,19 @@ def test_two_workers_give_identical_bytes(recipe, reference, tmp_path):
     assert _files(out) == _files(reference[0])
 
 
-def test_a_process_takes_a_given_library_once_and_keeps_its_own(recipe, monkeypatch):
-    """Workers get their parent's library (`_library_for(recipe, library)`): used when the
-    process has none for this recipe, never replacing the one it has (and its cache)."""
-    import dofsynth.generate as G
-
-    monkeypatch.setattr(G, "_WORKER", {"sha": None, "library": None})
-    monkeypatch.setattr("dofsynth.assets.build_library", lambda r: pytest.fail("built again"))
-    given, other = object(), object()
-    assert _library_for(recipe, given) is given
-    assert _library_for(recipe) is given and _library_for(recipe, other) is given
+def test_a_process_keeps_one_library_per_recipe(recipe, tmp_path):
+    """`library_for` builds a recipe's library once per process (workers are handed their
+    parent's); the same recipe text in another folder names other files: another library."""
+    lib = library_for(recipe)
+    assert library_for(recipe) is lib and library_for(recipe, object()) is lib
+    (tmp_path / "smoke.toml").write_text(recipe.text, encoding="utf-8")
+    moved = load_recipe(tmp_path / "smoke.toml")
+    assert moved.sha256 == recipe.sha256 and library_for(moved) is not lib
 
 
 def test_sample_alone_equals_sample_in_batch(recipe, reference, tmp_path):
     out = reference[0]
-    library = _library_for(recipe)
+    library = library_for(recipe)
     k = recipe.samples.count("train") - 1
     shard = shard_task(recipe, "train", k // recipe.shard_size)
     batch = dict(read_shard(out / shard.path))
@@ -356,7 +355,7 @@ def test_merge_refuses_overlaps_gaps_and_mixed_recipes(recipe, tmp_path, capsys)
 
 
 def test_missing_ray_says_how_to_install(monkeypatch, tmp_path, capsys):
-    from dofsynth.executors import make_executor
+    from dofsynth.generate.executors import make_executor
 
     monkeypatch.setitem(sys.modules, "ray", None)   # import ray -> ImportError
     with pytest.raises(ValueError, match=r"pip install 'dofsynth\[ray\]'"):
@@ -406,17 +405,13 @@ def test_two_range_processes_at_once_into_one_out(recipe, reference, tmp_path):
     assert _files(out) == _files(reference[0])
 
 
-def test_worker_malloc_settings(monkeypatch):
-    """Spawn and Ray workers keep freed blocks on glibc's heap (docs/generate.md, "Speed");
-    DOFSYNTH_WORKER_MALLOC=default leaves glibc alone, "MMAP_MIB,TRIM_MIB" overrides."""
-    from dofsynth.executors import MALLOC_ENV, tune_malloc
-
-    monkeypatch.setenv(MALLOC_ENV, "default")
-    assert tune_malloc() is False
-    code = ("import os, numpy as np; os.environ['%s'] = '%s'\n"
-            "from dofsynth.executors import tune_malloc\n"
-            "ok = tune_malloc(); a = np.ones((512, 512, 8)); del a; print(ok)")
-    for setting in ("", "16,64"):
-        out = subprocess.run([sys.executable, "-c", code % (MALLOC_ENV, setting)], capture_output=True, text=True,
-                             check=True)
-        assert out.stdout.strip() == str(sys.platform.startswith("linux"))
+def test_process_settings_do_not_change_the_bytes(recipe, reference, tmp_path):
+    """`generate --workers 1` sets itself up like a worker (one OpenCV thread, glibc malloc
+    thresholds; DOFSYNTH_WORKER_MALLOC=default leaves glibc alone): the bytes are the same."""
+    for setting in ("", "16,64", "default"):
+        out = tmp_path / f"m{setting.replace(',', '-') or 'tuned'}"
+        env = {**os.environ, "DOFSYNTH_WORKER_MALLOC": setting}
+        subprocess.run([sys.executable, "-m", "dofsynth", "generate", str(SMOKE), "--out", str(out), "--workers", "1",
+                        "--split", "test", "--quiet"], env=env, check=True, capture_output=True)
+        ref = {k: v for k, v in _files(reference[0]).items() if k.startswith("test/")}
+        assert {k: v for k, v in _files(out).items() if k.startswith("test/")} == ref

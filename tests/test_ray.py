@@ -1,15 +1,19 @@
 """--executor ray on a real local Ray cluster (2 CPUs): byte-identical to the local executor,
 retries after a worker is SIGKILLed mid-shard, --shards ranges on Ray merged with local ones."""
+import os
+import signal
+import sys
 from pathlib import Path
 
 import pytest
 import ray  # the optional extra: pip install -e '.[test,ray]'
+from ray import cloudpickle
 
 from dofsynth.cli import main
-from dofsynth.config import load_recipe
-from dofsynth.executors import KILL_HOOK_ENV, RayExecutor
 from dofsynth.generate import generate
+from dofsynth.generate.executors import RayExecutor
 from dofsynth.manifest import load_manifest
+from dofsynth.recipe import load_recipe
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "recipes" / "smoke.toml"
@@ -19,16 +23,33 @@ def _files(out: Path) -> dict[str, bytes]:
     return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
 
 
+class KillOnce:
+    """Injected into the Ray tasks (RayExecutor's task_hook): after a sample of the shard armed by
+    <folder>/<split>-<shard:06d>.kill, claim the file and SIGKILL the worker (the retry goes on)."""
+
+    def __init__(self, folder: Path):
+        self.folder = str(folder)
+
+    def __call__(self, split: str, index: int) -> None:
+        try:
+            (Path(self.folder) / f"{split}-{index:06d}.kill").unlink()  # only one attempt dies
+        except FileNotFoundError:
+            return
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+cloudpickle.register_pickle_by_value(sys.modules[__name__])  # workers need not import this module
+
+
 @pytest.fixture(scope="module")
 def kill_dir(tmp_path_factory):
-    """Arm the worker-kill test hook by creating <kill_dir>/<split>-<shard>.kill."""
+    """Arm KillOnce by creating <kill_dir>/<split>-<shard>.kill."""
     return tmp_path_factory.mktemp("kill")
 
 
 @pytest.fixture(scope="module")
-def cluster(kill_dir):
-    ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING", log_to_driver=False,
-             runtime_env={"env_vars": {KILL_HOOK_ENV: str(kill_dir)}})
+def cluster():
+    ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING", log_to_driver=False)
     yield
     ray.shutdown()
 
@@ -55,7 +76,8 @@ def test_ray_run_is_byte_identical_to_local(cluster, recipe, reference, tmp_path
 def test_worker_killed_mid_shard_is_retried(cluster, kill_dir, recipe, reference, tmp_path):
     arm = kill_dir / "train-000001.kill"
     arm.touch()
-    res = generate(recipe, tmp_path / "killed", executor=RayExecutor(max_retries=2), progress=False)
+    res = generate(recipe, tmp_path / "killed", executor=RayExecutor(max_retries=2, task_hook=KillOnce(kill_dir)),
+                   progress=False)
     assert not arm.exists()  # the first attempt claimed it and SIGKILLed its worker after one sample
     assert any(r.startswith("train/.train-000001.tar.tmp-") for r in res.removed), res.removed
     files = _files(tmp_path / "killed")
@@ -68,7 +90,7 @@ def test_retries_used_up_fail_clearly_then_resume(cluster, kill_dir, recipe, ref
     arm = kill_dir / "test-000000.kill"
     arm.touch()
     with pytest.raises(RuntimeError, match=r"test/test-000000.tar failed after 0 retries.*--resume"):
-        generate(recipe, out, executor=RayExecutor(max_retries=0), progress=False)
+        generate(recipe, out, executor=RayExecutor(max_retries=0, task_hook=KillOnce(kill_dir)), progress=False)
     assert not arm.exists()
     assert not (out / "manifest.json").exists()
     res = generate(recipe, out, resume=True, executor=RayExecutor(), progress=False)

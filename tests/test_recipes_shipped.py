@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from dofsynth.assets import build_library
-from dofsynth.config import load_recipe
+from dofsynth.recipe import load_recipe
 from dofsynth.train import config as train_config
 
 ROOT = Path(__file__).resolve().parents[1]

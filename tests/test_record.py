@@ -8,16 +8,17 @@ import numpy as np
 import pytest
 
 from dofsynth.assets import build_library
-from dofsynth.color import highlight_boost, linear_to_srgb8, to_uint8
+from dofsynth.color import highlight_boost, linear_to_srgb8
+from dofsynth.image import to_uint8
 from dofsynth.compose import scene_layers
-from dofsynth.config import load_recipe
+from dofsynth.recipe import load_recipe
 from dofsynth.io import encode_exr, encode_png
-from dofsynth.planes import Plane
-from dofsynth.record import (RENDERER_ID, SampleDecodeError, boosted_planes, decode_sample, encode_cover,
-                             encode_png8, encode_record, encode_srgb_png, encode_srgb_png_planar,
-                             render_sample)
+from dofsynth.render.planes import Plane
+from dofsynth.record import (RENDERER_ID, SampleDecodeError, decode_sample, encode_cover, encode_png8,
+                             encode_record, encode_srgb_png, encode_srgb_png_planar)
+from dofsynth.sample import render_sample
 from dofsynth.render import render_planes
-from dofsynth.aperture import from_dict as aperture_from_dict
+from dofsynth.optics import aperture_from_dict
 from dofsynth.scene import Scene, sample_scene
 from dofsynth.shards import write_shard
 
@@ -29,7 +30,7 @@ def setup():
     recipe = load_recipe(SMOKE)
     library = build_library(recipe)
     scenes = [sample_scene(recipe, library, "train", i) for i in range(3)]
-    return recipe, library, scenes, [render_sample(s, library, recipe) for s in scenes]
+    return recipe, library, scenes, [render_sample(s, library) for s in scenes]
 
 
 def test_members_and_record(setup):
@@ -76,21 +77,21 @@ def test_every_member_round_trips_to_the_same_bytes(setup):
 
 def test_deterministic_and_rerenderable_from_json(setup):
     recipe, library, scenes, samples = setup
-    again = render_sample(sample_scene(recipe, library, "train", 1), library, recipe)
+    again = render_sample(sample_scene(recipe, library, "train", 1), library)
     assert again == samples[1]
     from_json = Scene.from_dict(json.loads(samples[2]["json"]))
-    assert render_sample(from_json, library, recipe) == samples[2]
+    assert render_sample(from_json, library) == samples[2]
 
 
 def test_highlight_boost_changes_only_the_dof_targets(setup):
     recipe, library, scenes, samples = setup
     scene = scenes[0]
-    plain = render_sample(replace(scene, options=replace(scene.options, highlight=None)), library, recipe)
+    plain = render_sample(replace(scene, options=replace(scene.options, highlight=None)), library)
     assert plain["aif.png"] == samples[0]["aif.png"] and plain["depth.exr"] == samples[0]["depth.exr"]
     # a white pixel is boosted, a dark one is not
     rgb = np.array([[[1.0, 1.0, 1.0], [0.1, 0.1, 0.1]]], np.float32)
-    (p,) = boosted_planes([Plane(rgb, np.ones((1, 2), np.float32), 0.5)], {"threshold": 0.9, "gain": 4.0, "power": 2.0})
-    assert np.allclose(p.rgb[0, 0], 5.0) and np.allclose(p.rgb[0, 1], 0.1)
+    boosted = highlight_boost(rgb, threshold=0.9, gain=4.0, power=2.0)
+    assert np.allclose(boosted[0, 0], 5.0) and np.allclose(boosted[0, 1], 0.1)
 
 
 def test_webdataset_reads_every_field(setup, tmp_path):

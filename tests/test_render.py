@@ -3,9 +3,11 @@ energy, the exact mode, and input validation."""
 import numpy as np
 import pytest
 
-from dofsynth.aperture import Disk, Polygon
-from dofsynth.planes import Plane
+from dofsynth.optics import Disk, Polygon, kernel, support_radius
 from dofsynth.render import render_planes
+from dofsynth.render.fft import Convolver, Tiling, convolve
+from dofsynth.render.layered import LEVEL_RATIO, level_grid, level_weights
+from dofsynth.render.planes import Plane
 
 
 def rng(seed):
@@ -58,7 +60,7 @@ def test_constant_plane_is_analytic_convolution(ap, c, brute_coverage):
     assert out.dtype == np.float32 and out.shape == img.shape
     ref = direct_convolution(img, k, edge=True)
     assert np.abs(out - ref).max() < 3e-4  # measured 3e-5 .. 9e-5: the reference's sampling
-    own = direct_convolution(img, ap.kernel(max_coc * (float(d) - focus)), edge=True)
+    own = direct_convolution(img, kernel(ap, max_coc * (float(d) - focus)), edge=True)
     assert np.abs(out - own).max() < 2e-6  # the convolution itself is exact to float32
     # A cutout in front of black: zero outside the frame, premultiplied.
     rgb, a = blob(40, 44, 20, 30, 12, g)
@@ -113,7 +115,6 @@ def test_nearly_constant_map_equals_constant_plane():
     tilt = np.full((40, 40), 0.25, np.float32)
     tilt[:, 20:] = np.nextafter(np.float32(0.25), np.float32(1))  # two levels, 1e-7 px apart
     np.testing.assert_allclose(render_planes([opaque(img, tilt)], 0.6, 20.0), const, atol=2e-5)
-    from dofsynth.render import level_weights
 
     levels, k0, f = level_weights(np.full((4, 4), -7.0, np.float32), 0.5)
     assert levels.tolist() == [-7.0] and not k0.any() and not f.any()
@@ -278,7 +279,6 @@ def test_broadcast_ramp_equals_the_full_map():
 
 
 def test_level_grid_spacing():
-    from dofsynth.render import LEVEL_RATIO, level_grid
 
     np.testing.assert_allclose(level_grid(-3.0, 1.0, 0.5, 0.0), np.arange(-3.0, 1.01, 0.5))
     lv = level_grid(-40.0, 30.0, 0.5, 1 / 32)
@@ -315,125 +315,35 @@ def test_transparent_plane_changes_nothing():
     np.testing.assert_array_equal(render_planes(base + [ghost], 0.5, 10.0), render_planes(base, 0.5, 10.0))
 
 
-def small_tiles(monkeypatch, rows, wide):
-    """Make the renderer tile convolutions of a few dozen pixels: bands from `rows` rows on,
-    column tiles past `wide` padded columns."""
-    import dofsynth.render as R
-
-    monkeypatch.setattr(R, "TILE_ABOVE", rows)
-    monkeypatch.setattr(R, "TILE_ROWS", rows)
-    monkeypatch.setattr(R, "TILE_WIDE", wide)
-
-
-def test_tiled_fft_convolution_equals_the_whole_frame(monkeypatch):
-    """Large convolutions run as overlap-save over FFT tiles: the same result as one FFT."""
-    import dofsynth.render as R
-
-    g = rng(13)
-    h, w = 90, 130
-    img = g.random((h, w, 3), dtype=np.float32)
-    fg = g.random((h, w, 3), dtype=np.float32)
-    a = np.zeros((h, w), np.float32)
-    a[10:80, 20:120] = g.random((70, 100), dtype=np.float32)
-    ramp = np.broadcast_to(np.linspace(0.1, 0.5, h, dtype=np.float32)[:, None], (h, w))
-    scenes = [[opaque(img, 0.2), Plane(fg, a, 0.7)],
-              [Plane(img, g.random((h, w), dtype=np.float32), 0.3)],
-              [opaque(img, ramp), Plane(fg, a, np.full((h, w), 0.8, np.float32) - ramp * 0.1)]]
-    whole = [render_planes(p, 0.95, 24.0, Polygon(6)) for p in scenes]
-    small_tiles(monkeypatch, 40, 60)
-    conv = R._Conv(10.3, Disk(), h, w)
-    assert conv.ty < h and conv.tx < w  # really tiled
-    for p, ref in zip(scenes, whole):
-        np.testing.assert_allclose(render_planes(p, 0.95, 24.0, Polygon(6)), ref, atol=2e-6)
-
-
-@pytest.mark.parametrize("tiles", [None, (30, 40)])
-@pytest.mark.parametrize("radius", [3.2, -9.6])  # cv2 direct and FFT
-def test_conv_add_into_matches_a_direct_full_convolution(monkeypatch, tiles, radius):
-    """_Conv.add_into (overlap-save over tiles, only the part inside dst computed) adds the full
-    convolution at any offset, clipped to dst: checked against a float64 direct convolution."""
+@pytest.mark.parametrize("tiling", [None, Tiling(above=30, rows=30, wide=40)])
+@pytest.mark.parametrize("radius", [3.2, -9.6, 14.7])  # cv2 direct, FFT, FFT with S past the band
+def test_the_convolver_equals_a_float64_direct_convolution_tiled_or_not(tiling, radius):
+    """Convolver.add_into adds the full convolution of its input at any offset of a
+    destination, clipped to it, whatever the tiling (overlap-save bands and column tiles)."""
     from scipy.signal import convolve2d
 
-    import dofsynth.render as R
-    from dofsynth.aperture import kernel
-
-    if tiles is not None:
-        small_tiles(monkeypatch, *tiles)
     g = rng(31)
     h, w = 67, 83
     x = g.random((h, w), dtype=np.float32)
-    conv = R._Conv(radius, Disk(), h, w)
-    if tiles is not None and not conv.direct:
-        assert conv.ty < h and conv.tx < w  # really tiled
+    conv = Convolver(radius, Disk(), h, w) if tiling is None else Convolver(radius, Disk(), h, w, tiling)
+    s = support_radius(radius)
     full = convolve2d(x.astype(np.float64), kernel(Disk(), radius).astype(np.float64), mode="full")
-    for shape, oy, ox in [((h + 2 * conv.s, w + 2 * conv.s), 0, 0), ((50, 60), -7, 11), ((120, 40), 30, -25),
-                          ((20, 20), -200, 0)]:
+    for shape, oy, ox in [((h + 2 * s, w + 2 * s), 0, 0), ((50, 60), -7, 11), ((120, 40), 30, -25),
+                          ((20, 20), -200, 0), ((h + 2 * s, w + 2 * s), -30, 0)]:
         base = g.random(shape, dtype=np.float32)
         dst = base.copy()
         conv.add_into(lambda y0, y1, x0, x1, out: np.copyto(out, x[y0:y1, x0:x1]), dst, oy, ox)
         want = base.astype(np.float64)
-        R._add_clipped(want, oy, ox, full)
+        ys, xs = slice(max(oy, 0), min(oy + full.shape[0], shape[0])), slice(max(ox, 0), min(ox + full.shape[1], shape[1]))
+        if ys.stop > ys.start and xs.stop > xs.start:
+            want[ys, xs] += full[ys.start - oy : ys.stop - oy, xs.start - ox : xs.stop - ox]
         np.testing.assert_allclose(dst, want, atol=2e-6)
-
-
-def test_conv_reads_each_input_row_once_per_column_tile(monkeypatch):
-    """Overlap-save bands share 2S input rows: their rows' transforms are reused, so within one
-    column tile no input row is asked for twice, and every row reaching dst is asked for."""
-    import dofsynth.render as R
-
-    small_tiles(monkeypatch, 30, 40)
-    h, w = 67, 83
-    x = rng(32).random((h, w), dtype=np.float32)
-    conv = R._Conv(-9.6, Disk(), h, w)
-    assert not conv.direct and conv.ty < h and conv.tx < w
-    for oy in (0, -30):  # all of the full convolution, or dst cutting off its first 30 rows
-        asked = {}
-
-        def tile(y0, y1, x0, x1, out):
-            asked.setdefault((x0, x1), []).append((y0, y1))
-            out[...] = x[y0:y1, x0:x1]
-
-        dst = np.zeros((h + 2 * conv.s, w + 2 * conv.s), np.float32)
-        conv.add_into(tile, dst, oy, 0)
-        assert len(asked) > 1
-        first = max(-oy - 2 * conv.s, 0)  # input rows above it reach no row of dst
-        for spans in asked.values():
-            rows = [y for y0, y1 in spans for y in range(y0, y1)]
-            assert sorted(rows) == list(range(first, h))
-
-
-@pytest.mark.parametrize("edge", [True, False])
-def test_grab_reads_a_box_edge_replicated_or_zero_padded(edge):
-    """_grab, as a new array and written into a strided buffer, equals the frame read at clipped
-    indices (edge replication) or the frame pasted into zeros, for boxes inside, across and
-    wholly outside the frame; a box inside is a view of the frame."""
-    import dofsynth.render as R
-
-    a = rng(33).random((9, 11, 3), dtype=np.float32)
-    for y0, y1, x0, x1 in [(2, 7, 3, 9), (-3, 5, -4, 6), (4, 13, 6, 15), (-2, 12, -3, 14), (10, 13, -5, -1)]:
-        iy, ix = np.arange(y0, y1), np.arange(x0, x1)
-        for arr in (a, a[:, :, 1]):  # interleaved frame, and one channel of it (strided)
-            if edge:
-                want = arr[np.clip(iy, 0, 8)[:, None], np.clip(ix, 0, 10)[None, :]]
-            else:
-                inside = ((iy >= 0) & (iy < 9))[:, None] & ((ix >= 0) & (ix < 11))[None, :]
-                want = np.where(inside.reshape(inside.shape + (1,) * (arr.ndim - 2)),
-                                arr[np.clip(iy, 0, 8)[:, None], np.clip(ix, 0, 10)[None, :]], 0.0)
-            np.testing.assert_array_equal(R._grab(arr, y0, y1, x0, x1, edge), want)
-            buf = np.full((y1 - y0 + 2, x1 - x0 + 5) + arr.shape[2:], np.nan, np.float32)
-            out = buf[1 : y1 - y0 + 1, 2 : x1 - x0 + 2]  # a view with foreign strides, NaN-filled
-            assert R._grab(arr, y0, y1, x0, x1, edge, out) is out
-            np.testing.assert_array_equal(out, want)
-            assert np.isnan(buf[0]).all() and np.isnan(buf[:, :2]).all()  # nothing written outside it
-    assert np.shares_memory(R._grab(a, 2, 7, 3, 9, edge), a)
 
 
 def test_convolve_equals_a_zero_padded_direct_convolution():
     """render.convolve: a (C, h, w) stack, the same positions, zeros beyond the border."""
     from scipy.signal import convolve2d
 
-    from dofsynth.aperture import kernel
-    from dofsynth.render import convolve
 
     x = rng(33).random((2, 40, 50), dtype=np.float32)
     for radius in (0.3, 2.6, -8.4):
@@ -460,24 +370,20 @@ def test_non_finite_values_are_refused_wherever_they_are():
                 render_planes([Plane(arrays["rgb"], arrays["alpha"], arrays["disparity"])], 0.3, 4.0)
 
 
-def test_min_max_in_row_blocks_matches_numpy(monkeypatch):
-    """Large arrays are read in row blocks (min and max of each while it is in cache): the same
-    answer as whole-array min and max for views, broadcasts and a NaN or inf in any block."""
-    from dofsynth import planes as planes_mod
-
-    monkeypatch.setattr(planes_mod, "_BLOCK_BYTES", 200)  # a few rows per block
+def test_non_finite_values_in_large_frames_are_refused_in_any_row():
+    """A frame of several MiB (validation reads it in row blocks): a NaN or inf in its first, a
+    middle or its last row is refused, views and broadcasts are read right."""
     g = rng(23)
-    frame = g.random((37, 13, 3), dtype=np.float32) - 0.25
-    cases = [frame, frame[:, :, 1], frame[3:30, 2:11], frame[::-2], frame[:, ::3, :2],
-             np.broadcast_to(frame[:, :1, 0], (37, 13)), np.broadcast_to(frame[0, :, 0], (37, 13))]
-    for arr in cases:
-        assert planes_mod._min_max(arr) == (float(arr.min()), float(arr.max()))
-    for row in (0, 18, 36):  # the first, a middle and the last block
+    frame = g.random((300, 400, 3), dtype=np.float32)
+    ones = np.ones((300, 400), np.float32)
+    render_planes([Plane(frame[::-1], np.broadcast_to(np.float32(1.0), (300, 400)),
+                         np.broadcast_to(np.linspace(0.1, 0.5, 400, dtype=np.float32), (300, 400)))], 0.3, 1.0)
+    for row in (0, 150, 299):
         for bad in (np.nan, np.inf, -np.inf):
             arr = frame.copy()
             arr[row, 5, 2] = bad
             with pytest.raises(ValueError, match="planes\\[0\\].rgb contains NaN or inf"):
-                render_planes([Plane(arr, np.ones((37, 13), np.float32), 0.5)], 0.3, 4.0)
+                render_planes([Plane(arr, ones, 0.5)], 0.3, 1.0)
 
 
 @pytest.mark.parametrize("method", ["layered", "exact"])

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from dofsynth.assets import build_library
-from dofsynth.config import load_recipe
-from dofsynth.scene import SPLIT_ID, Scene, in_frame_share, placed_size, sample_scene
+from dofsynth.recipe import load_recipe
+from dofsynth.rng import SPLIT_ID
+from dofsynth.scene import Scene, in_frame_share, placed_size, sample_scene
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +53,7 @@ def test_record_fields_match_the_format(many):
 
 def test_depth_rules_hold_over_many_scenes(demo, many):
     recipe, _ = demo
-    br, fr, fo = recipe.background, recipe.foreground, recipe.focus
+    br, fr, fo = recipe.scene.background, recipe.scene.foreground, recipe.focus
     gap = fr.min_gap
     modes = {"flat": 0, "horizontal": 0, "vertical": 0}
     for s in many:
@@ -84,13 +85,13 @@ def test_depth_rules_hold_over_many_scenes(demo, many):
 def test_placement_keeps_objects_in_frame_at_the_recipe_scale(demo, many):
     recipe, lib = demo
     H, W = recipe.frame
-    lo, hi = recipe.foreground.scale
+    lo, hi = recipe.scene.foreground.scale
     for s in many:
         for role, p in (("front", s.front), ("middle", s.middle)):
             _, _, ew, eh = lib[s.assets[role].id].extent
             w, h = placed_size(p.scale, ew, eh)
             assert lo * min(H, W) - 1 <= max(w, h) <= hi * min(H, W) + 1
-            assert in_frame_share(p.x, p.y, w, h, W, H) >= recipe.foreground.min_in_frame
+            assert in_frame_share(p.x, p.y, w, h, W, H) >= recipe.scene.foreground.min_in_frame
         x, y, cw, ch = s.background.crop
         bw, bh = lib[s.assets["background"].id].size
         assert 0 <= x and x + cw <= bw and 0 <= y and y + ch <= bh

@@ -4,8 +4,9 @@ import tarfile
 
 import pytest
 
-from dofsynth.shards import (ShardError, ShardWriter, member_sort_key, read_shard, remove_temp_files,
-                             sha256_file, shard_keys, shard_name, temp_path, write_shard)
+from dofsynth.files import remove_temp_files, sha256_file, temp_path
+from dofsynth.shards import (ShardError, ShardWriter, member_sort_key, read_shard, shard_keys, shard_name,
+                             write_shard)
 
 
 def _samples(n=3, salt=b""):
@@ -98,9 +99,9 @@ def test_truncated_shard_is_reported(tmp_path):
 
 def test_stale_temp_files_are_removed(tmp_path):
     (tmp_path / ".train-000000.tar.tmp-123").write_bytes(b"half")
-    (tmp_path / ".manifest.json.tmp99").write_bytes(b"half")
+    (tmp_path / ".manifest.json.tmp-99").write_bytes(b"half")
     (tmp_path / "train-000001.tar").write_bytes(b"keep")
     removed = remove_temp_files(tmp_path)
-    assert sorted(p.name for p in removed) == [".manifest.json.tmp99", ".train-000000.tar.tmp-123"]
+    assert sorted(p.name for p in removed) == [".manifest.json.tmp-99", ".train-000000.tar.tmp-123"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["train-000001.tar"]
     assert shard_name("test", 12) == "test-000012.tar"

@@ -9,10 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from dofsynth import dataset as ds
-from dofsynth import sheets
+from dofsynth.image import resize, to_rgb8
+from dofsynth.qa import dataset as ds
+from dofsynth.qa import draw, html, sheets
+from dofsynth.scene import Scene
 from dofsynth.cli import main
 from dofsynth.io import decode_image, read_image
+from dofsynth.record import decode_sample
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -35,7 +38,7 @@ def _crop(img, box):
 
 def _ink(region) -> int:
     """Pixels that differ from the sheet background."""
-    return int(np.any(region != np.uint8(sheets.BG), axis=-1).sum())
+    return int(np.any(region != np.uint8(draw.BG), axis=-1).sum())
 
 
 def test_sheet_size_follows_the_layout(sheet4):
@@ -49,16 +52,16 @@ def test_tiles_show_the_sample_pixels(sheet4):
     img, lay, samples = sheet4
     for row, s in enumerate(samples):
         aif = _crop(img, lay.tile(row, 0)).astype(int)
-        want = sheets.resize(sheets.to_u8(s["aif"]), 192, 192).astype(int)
+        want = resize(to_rgb8(s["aif"]), 192, 192).astype(int)
         assert np.abs(aif - want).max() <= 1 and aif.std() > 5
         for i, dof in enumerate(s["dof"]):
             tile = _crop(img, lay.tile(row, 3 + i)).astype(int)
-            assert np.abs(tile - sheets.resize(sheets.to_u8(dof), 192, 192).astype(int)).max() <= 1
+            assert np.abs(tile - resize(to_rgb8(dof), 192, 192).astype(int)).max() <= 1
 
 
 def test_disparity_tile_follows_the_colour_map(sheet4):
     img, lay, samples = sheet4
-    lut = sheets.colormap_lut().astype(int)
+    lut = draw.colormap_lut().astype(int)
     ref = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[None], cv2.COLORMAP_TURBO)[0, :, ::-1]
     np.testing.assert_array_equal(lut, ref)           # OpenCV's TURBO, in RGB order
     assert lut[255, 0] > 2 * lut[255, 2] and lut[0, 2] > lut[0, 0]   # near red, far blue-violet
@@ -84,7 +87,7 @@ def test_coverage_tile_tints_front_red_and_middle_green(sheet4):
     seen_front = seen_middle = False
     for row, s in enumerate(samples):
         tile = _crop(img, lay.tile(row, 2)).astype(int)
-        cov = sheets.resize(s["cover"].astype(np.float32), 192, 192)
+        cov = resize(s["cover"].astype(np.float32), 192, 192)
         front = cov[:, :, 0] > 0.95
         middle = (cov[:, :, 1] > 0.95) & (cov[:, :, 0] < 0.05)
         if front.sum() > 50:
@@ -141,13 +144,13 @@ def test_default_path_and_cli(smoke_set, tmp_path, capsys):
 
 
 def test_html_page_links_full_size_images_and_sweeps(smoke_set, tmp_path):
-    page = sheets.write_html(smoke_set, tmp_path / "html", split="train", n=3, seed=2, sweep=1, sweep_steps=4)
+    page = html.write_html(smoke_set, tmp_path / "html", split="train", n=3, seed=2, sweep=1, sweep_steps=4)
     text = page.read_text()
     keys = sheets.choose_keys(ds.load(smoke_set), "train", 3, 2)
     links = re.findall(r'href="(img/[^"]+)"', text)
     assert links and all((page.parent / l).is_file() for l in links)
     for key in keys:
-        members = ds.read_members(smoke_set, "train", key)
+        members = ds.read_members_many(smoke_set, "train", [key])[key]
         # the full-size images are the shard's own bytes
         assert (page.parent / "img" / f"{key}.aif.png").read_bytes() == members["aif.png"]
         assert (page.parent / "img" / f"{key}.dof.1.png").read_bytes() == members["dof.1.png"]
@@ -170,10 +173,10 @@ def test_focus_sweep_at_a_target_focus_is_that_target(smoke_set):
     recipe = ds.recipe_from_manifest(m, smoke_set)
     library = build_library(recipe)
     key = ds.split_keys(m, "test")[1]
-    members = ds.read_members(smoke_set, "test", key)
-    s = ds.decode_sample(members, key)
+    members = ds.read_members_many(smoke_set, "test", [key])[key]
+    s = decode_sample(members, key)
     t0 = s["record"]["targets"][0]
-    frames = sheets.focus_sweep(s["record"], library, recipe, [t0["focus"], 0.0])
+    frames = sheets.sweep_images(Scene.from_dict(s["record"]), library, [t0["focus"], 0.0])
     want = np.round(decode_image(members["dof.0.png"]) * 255).astype(np.uint8)
     np.testing.assert_array_equal(frames[0], want)
 

@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dofsynth import dataset as ds
-from dofsynth import stats
+from dofsynth.qa import dataset as ds
+from dofsynth.qa import stats
 from dofsynth.cli import main
 from dofsynth.io import read_image
-from dofsynth.sheets import BG
+from dofsynth.qa.draw import BG
 
 ROOT = Path(__file__).resolve().parents[1]
 

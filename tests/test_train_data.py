@@ -9,11 +9,13 @@ import cv2
 import numpy as np
 import pytest
 import torch
-import webdataset as wds
 
 from dofsynth.io import decode_exr, decode_image, encode_exr, encode_png
+from dofsynth.manifest import assemble_manifest, write_manifest
+from dofsynth.shards import ShardInfo, shard_name, write_shard
 from dofsynth.train.config import Config, from_dict
-from dofsynth.train.data import DofShards, area_downsample, decode_sample, find_shards, make_loader, resolve, sample_rng
+from dofsynth.train.data import (DofShards, area_downsample, find_shards, make_loader, raw_samples, resolve,
+                                 sample_rng, training_item)
 
 TINY = {
     "data": {"crop": 32, "levels": 1, "batch_size": 4, "num_workers": 0, "shuffle_buffer": 8},
@@ -56,7 +58,7 @@ def make_sample(split: str, index: int, size: int, seed: int = 0) -> dict:
         "schema_version": 1, "key": f"{split}-{index:07d}", "split": split, "index": index,
         "seed": [seed, 0, index], "size": [h, w],
         "assets": {}, "aperture": {"kind": "disk"}, "options": {}, "renderer": "test",
-        "background": {"mode": "ramp" if ramp else "flat", "b0": b0, "b1": b1 if ramp else None,
+        "background": {"mode": "ramp" if ramp else "flat", "b0": b0, "b1": b1 if ramp else b0,
                        "direction": "horizontal" if ramp else None, "crop": [0, 0, w, h], "flip": False},
         "middle": {"disparity": 0.5, "scale": 1.0, "x": 0, "y": 0, "flip": False},
         "front": {"disparity": 0.8, "scale": 1.0, "x": 0, "y": 0, "flip": False},
@@ -70,7 +72,7 @@ def make_sample(split: str, index: int, size: int, seed: int = 0) -> dict:
     aif[front] = rng.random(3)
     cover = np.zeros((h, w, 3), np.float32)
     cover[:, :, 0], cover[:, :, 1] = front, mid
-    members = {"__key__": record["key"], "aif.png": encode_png(aif), "depth.exr": encode_exr(depth),
+    members = {"aif.png": encode_png(aif), "depth.exr": encode_exr(depth),
                "cover.png": encode_png(cover), "json": json.dumps(record, sort_keys=True).encode()}
     for n, t in enumerate(record["targets"]):
         members[f"dof.{n}.png"] = encode_png(blur_target(aif, depth, t["focus"], t["max_coc"]))
@@ -78,13 +80,18 @@ def make_sample(split: str, index: int, size: int, seed: int = 0) -> dict:
 
 
 def make_dataset(out: Path, n_train: int = 8, n_test: int = 2, size: int = 32, per_shard: int = 4) -> Path:
-    """A tiny data set OUT/{train,test}/<split>-NNNNNN.tar of `size` px samples."""
+    """A tiny data set: OUT/{train,test}/<split>-NNNNNN.tar of `size` px samples and the
+    manifest.json that lists them (docs/FORMAT.md)."""
+    shards: dict[str, list[ShardInfo]] = {}
     for split, n in (("train", n_train), ("test", n_test)):
-        (out / split).mkdir(parents=True, exist_ok=True)
-        for s0 in range(0, n, per_shard):
-            with wds.TarWriter(str(out / split / f"{split}-{s0 // per_shard:06d}.tar"), mtime=0) as sink:
-                for i in range(s0, min(n, s0 + per_shard)):
-                    sink.write(make_sample(split, i, size))
+        for k, s0 in enumerate(range(0, n, per_shard)):
+            name = shard_name(split, k)
+            ids = range(s0, min(n, s0 + per_shard))
+            count, sha, nbytes = write_shard(out / split / name,
+                                             ((f"{split}-{i:07d}", make_sample(split, i, size)) for i in ids))
+            shards.setdefault(split, []).append(ShardInfo(split, k, name, s0, count, sha, nbytes))
+    recipe = {"text": "", "sha256": "0" * 64, "path": None, "name": "tiny"}
+    write_manifest(out, assemble_manifest(recipe, {"train": n_train, "test": n_test}, shards))
     return out
 
 
@@ -119,33 +126,33 @@ def test_items_have_the_documented_shapes_ranges_and_exact_low_res(data_dir):
 
 
 def _raw(data_dir, index=0):
-    return next(iter(wds.tariterators.tarfile_samples([{"url": find_shards(data_dir, "train")[0]}])))
+    return next(raw_samples(find_shards(data_dir, "train")))
 
 
 def test_target_choice_crop_alignment_and_the_target_is_never_corrupted(data_dir):
     cfg = resolve(tiny_config(data={"target": "1"}, augment={"morph_prob": 1.0, "noise_prob": 1.0}), data_dir)
     raw = _raw(data_dir)
-    full = decode_sample(raw, cfg, sample_rng(0, 0, "train", 0))
+    full = training_item(raw, cfg, sample_rng(0, 0, "train", 0))
     assert full["target_index"] == 1 and full["image"].shape == (3, 48, 48)
     truth = decode_image(raw["dof.1.png"])
     assert np.array_equal(full["target"].numpy().transpose(1, 2, 0), truth)
     clean = torch.from_numpy(decode_exr(raw["depth.exr"]))
     assert not torch.equal(full["disparity"][0], clean)  # the input is corrupted ...
-    crop = decode_sample(raw, cfg, sample_rng(0, 3, "train", 0), crop=32)
+    crop = training_item(raw, cfg, sample_rng(0, 3, "train", 0), crop=32)
     # ... the crop is aligned to 2**levels: it is found at an even offset of the full target
     t = full["target"]
     hits = [(y, x) for y in range(0, 17) for x in range(0, 17)
             if torch.equal(t[:, y:y + 32, x:x + 32], crop["target"])]
     assert hits and all(y % 2 == 0 and x % 2 == 0 for y, x in hits)
     with pytest.raises(ValueError, match="target 5"):
-        decode_sample(raw, cfg, sample_rng(0, 0, "train", 0), target=5)
+        training_item(raw, cfg, sample_rng(0, 0, "train", 0), target=5)
 
 
 def test_random_target_choice_uses_every_target_and_is_seeded(data_dir):
     cfg = resolve(tiny_config(), data_dir)
     raw = _raw(data_dir)
-    picks = [decode_sample(raw, cfg, sample_rng(0, e, "train", 0))["target_index"] for e in range(12)]
-    again = [decode_sample(raw, cfg, sample_rng(0, e, "train", 0))["target_index"] for e in range(12)]
+    picks = [training_item(raw, cfg, sample_rng(0, e, "train", 0))["target_index"] for e in range(12)]
+    again = [training_item(raw, cfg, sample_rng(0, e, "train", 0))["target_index"] for e in range(12)]
     assert set(picks) == {0, 1} and picks == again
 
 
@@ -176,9 +183,11 @@ def test_ranks_split_the_data_without_duplicates(data_dir, monkeypatch):
     assert sorted(seen[0] + seen[1]) == [f"train-{i:07d}" for i in range(12)]
 
 
-def test_missing_shards_name_the_folder(tmp_path):
-    with pytest.raises(FileNotFoundError, match="train"):
+def test_missing_data_names_the_folder_and_the_split(tmp_path, data_dir):
+    with pytest.raises(FileNotFoundError, match=f"{tmp_path}.*no manifest"):
         find_shards(tmp_path, "train")
+    with pytest.raises(FileNotFoundError, match="has no val split"):
+        find_shards(data_dir, "val")
 
 
 def test_area_downsample_is_the_block_mean():
@@ -192,19 +201,19 @@ def test_linear_colour_decodes_images_and_targets_to_linear_light(data_dir):
     from dofsynth.color import srgb_to_linear
 
     raw = _raw(data_dir)
-    srgb = decode_sample(raw, resolve(tiny_config(), data_dir), sample_rng(0, 0, "train", 0))
-    lin = decode_sample(raw, resolve(tiny_config(data={"color": "linear"}), data_dir), sample_rng(0, 0, "train", 0))
+    srgb = training_item(raw, resolve(tiny_config(), data_dir), sample_rng(0, 0, "train", 0))
+    lin = training_item(raw, resolve(tiny_config(data={"color": "linear"}), data_dir), sample_rng(0, 0, "train", 0))
     for k in ("image", "target"):
         assert torch.allclose(lin[k], torch.from_numpy(srgb_to_linear(srgb[k].numpy())), atol=1e-6)
     assert torch.equal(lin["signed_lo"], srgb["signed_lo"])
 
 
 def test_the_recorded_corruption_replays_the_disparity_the_network_saw(data_dir):
-    from dofsynth.augment import apply_corruption, layers_from_record
+    from dofsynth.train.augment import apply_corruption, layers_from_record
 
     cfg = resolve(tiny_config(augment={"morph_prob": 1.0, "shift_prob": 1.0, "noise_prob": 1.0}), data_dir)
     raw = _raw(data_dir)
-    item = decode_sample(raw, cfg, sample_rng(0, 0, "train", 0))
+    item = training_item(raw, cfg, sample_rng(0, 0, "train", 0))
     params = json.loads(item["corruption"])
     assert all(m is not None for m in params["morph"]) and params["shift"] and params["noise"]
     layers = layers_from_record(json.loads(raw["json"]), decode_image(raw["cover.png"]))

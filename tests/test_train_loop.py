@@ -154,14 +154,13 @@ def test_config_round_trip_and_refusals(tmp_path):
 
 
 def test_two_steps_on_the_generators_smoke_data(tmp_path, smoke_set):
-    from dofsynth.augment import layers_from_record
+    from dofsynth.train.augment import layers_from_record
     from dofsynth.io import decode_exr, decode_image
-    from dofsynth.train.data import find_shards, peek_records
-    import webdataset as wds
+    from dofsynth.train.data import find_shards, peek_records, raw_samples
 
     data = smoke_set
     # the corruption's model of the layers agrees with the generator's depth maps
-    raw = next(iter(wds.tariterators.tarfile_samples([{"url": find_shards(data, "train")[0]}])))
+    raw = next(raw_samples(find_shards(data, "train")))
     record, depth, cover = json.loads(raw["json"]), decode_exr(raw["depth.exr"]), decode_image(raw["cover.png"])
     layers = layers_from_record(record, cover)
     free = (cover[:, :, 0] == 0) & (cover[:, :, 1] == 0)

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dofsynth import dataset as ds
+from dofsynth.qa import dataset as ds
 from dofsynth.cli import main
 from dofsynth.record import encode_record
-from dofsynth.verify import check_record_schema, verify_dataset
+from dofsynth.qa.verify import check_record_schema, verify_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -2,72 +2,17 @@
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import sys
 from pathlib import Path
-
-from dofsynth.assets import (MANIFEST_SCHEMA, AssetError, file_sha256, image_files, image_header,
-                             is_paired_layout, read_sources_licences)
-from dofsynth.io import atomic_write_bytes
 
 KIND_CHOICES = ("background", "foreground")
 
 
-def _kind_of(rel: str, paired_root: bool, forced: str | None, channels: int) -> str:
-    parts = rel.split("/")
-    if "alpha" in parts[:-1]:
-        return "alpha"
-    if forced:
-        return forced
-    if paired_root and parts[0] == "fg":
-        return "foreground"
-    if paired_root and parts[0] in ("bg", "background", "backgrounds"):
-        return "background"
-    return "foreground" if channels in (2, 4) else "background"
-
-
-def scan_folder(root: Path, out_dir: Path, kind: str | None = None, licence: str | None = None,
-                progress: bool = True) -> dict:
-    """The manifest of every image under `root` (sorted): path relative to root, sha256, bytes,
-    width, height, channels, kind, licence. `root` is written relative to `out_dir`."""
-    from tqdm import tqdm
-
-    root = root.resolve()
-    if not root.is_dir():
-        raise FileNotFoundError(f"{root}: no such asset folder")
-    lic = read_sources_licences(root)
-    for sub in sorted(p for p in root.iterdir() if p.is_dir()):
-        for k, v in read_sources_licences(sub).items():
-            lic.setdefault(k, v)
-    paired = is_paired_layout(root) or (root / "fg").is_dir()
-    files, skipped = [], []
-    for p in tqdm(image_files(root), desc=f"scan {root.name}", unit="file", disable=not progress,
-                  file=sys.stderr):
-        rel = p.relative_to(root).as_posix()
-        data = p.read_bytes()
-        try:
-            w, h, c = image_header(str(p))
-        except AssetError as exc:
-            skipped.append({"path": rel, "reason": str(exc)})
-            print(f"dofsynth assets scan: warning: skipping {exc}", file=sys.stderr)
-            continue
-        files.append({
-            "path": rel, "sha256": file_sha256(data), "bytes": len(data), "width": w, "height": h,
-            "channels": c, "kind": _kind_of(rel, paired, kind, c),
-            "licence": lic.get(str(p), licence or "unknown"),
-        })
-    return {"schema_version": MANIFEST_SCHEMA,
-            "root": Path(os.path.relpath(root, out_dir.resolve())).as_posix(),
-            "files": files, "skipped": skipped}
-
-
 def run_scan(args: argparse.Namespace) -> int:
+    from dofsynth.assets.pins import pin_folder, write_pins
+
     out = Path(args.output)
-    manifest = scan_folder(Path(args.dir), out.parent if str(out.parent) else Path("."), args.kind,
-                           args.licence, progress=not args.quiet)
-    text = json.dumps(manifest, indent=1, sort_keys=True) + "\n"
-    atomic_write_bytes(out, text.encode("utf-8"))
+    manifest = pin_folder(Path(args.dir), out.parent, args.kind, args.licence, progress=not args.quiet)
+    write_pins(out, manifest)
     kinds: dict[str, int] = {}
     for f in manifest["files"]:
         kinds[f["kind"]] = kinds.get(f["kind"], 0) + 1
@@ -78,7 +23,7 @@ def run_scan(args: argparse.Namespace) -> int:
 
 def run_check(args: argparse.Namespace) -> int:
     from dofsynth.assets import build_library
-    from dofsynth.config import load_recipe
+    from dofsynth.recipe import load_recipe
 
     recipe = load_recipe(args.recipe)
     lib = build_library(recipe)

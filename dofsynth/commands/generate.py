@@ -89,10 +89,11 @@ def print_plan(recipe, splits, limit) -> None:
 
 
 def run(args) -> int:
-    from dofsynth.config import load_recipe
-    from dofsynth.executors import make_executor, tune_malloc
-    from dofsynth.generate import SPLITS, generate, parse_shard_range
+    from dofsynth.generate import generate, make_executor, parse_shard_range
+    from dofsynth.generate.worker import setup_process
     from dofsynth.manifest import save_summary
+    from dofsynth.recipe import load_recipe
+    from dofsynth.rng import SPLITS
 
     if args.save_summary is not None and args.save_summary.suffix != ".json":
         raise ValueError(f"--save-summary {args.save_summary}: the summary file must end in .json")
@@ -111,7 +112,7 @@ def run(args) -> int:
         raise ValueError("--out OUT is required (the data set folder)")
     executor = make_executor(args.executor, workers=args.workers, address=args.address, max_retries=args.max_retries)
     if args.executor != "ray" and args.workers == 1:
-        tune_malloc()  # the shards render in this process, whose one job this is (as in a worker)
+        setup_process()  # the shards render in this process, whose one job this is (as in a worker)
     result = generate(recipe, args.out, splits=splits, limit=args.limit, resume=args.resume,
                       progress=not args.quiet, executor=executor, shard_range=shard_range)
     if args.save_summary is not None:

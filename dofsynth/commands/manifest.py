@@ -66,47 +66,8 @@ def _parts(args) -> tuple[list[Path], Path]:
     return given, args.out
 
 
-def merge(parts: list[Path], out: Path, keep_parts: bool = False) -> tuple[dict, list[str]]:
-    """Merge `parts` into the manifest file `out`; check the shards against the folder of
-    `out`; returns (manifest, removed files)."""
-    from dofsynth.generate import _remove_temps
-    from dofsynth.locks import LOCK_NAME, OutputLock
-    from dofsynth.manifest import (MANIFEST_NAME, PROGRESS_PART_RE, canonical_json, merge_parts)
-    from dofsynth.io import atomic_write_bytes
-    from dofsynth.shards import is_temp_name
-
-    if out.suffix != ".json":
-        raise ValueError(f"--out {out}: the manifest file must end in .json")
-    folder = out.parent
-    removed: list[str] = []
-    with OutputLock(folder):
-        manifest = merge_parts(parts)
-        for split in manifest["splits"].values():
-            for s in split["shards"]:
-                f = folder / s["path"]
-                if not f.is_file():
-                    raise FileNotFoundError(f"{f}: shard listed by the parts is missing from {folder}")
-                if f.stat().st_size != s["bytes"]:
-                    raise ValueError(f"{f}: {f.stat().st_size} bytes, the parts say {s['bytes']} (rerun its "
-                                     "range with --resume)")
-        data = canonical_json(manifest, indent=1)
-        atomic_write_bytes(out, data)
-        if not keep_parts:
-            for p in parts:
-                Path(p).unlink(missing_ok=True)
-                removed.append(Path(p).name)
-        if out.name == MANIFEST_NAME:  # the data set's own manifest: tidy OUT like a single run's folder
-            for p in sorted(folder.iterdir()):
-                stale = (p.name.startswith(f"{LOCK_NAME}.part-") or PROGRESS_PART_RE.match(p.name)
-                         or (is_temp_name(p.name) and p.is_file()))
-                if stale:
-                    p.unlink(missing_ok=True)
-                    removed.append(p.name)
-            removed += _remove_temps(folder)
-    return manifest, removed
-
-
 def run(args) -> int:
+    from dofsynth.generate.merge import merge
     from dofsynth.manifest import save_summary
 
     if args.save_summary is not None and args.save_summary.suffix != ".json":

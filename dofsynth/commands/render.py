@@ -111,10 +111,9 @@ def _write(path: Path, rgb: np.ndarray) -> None:
 def run(args) -> int:
     import scipy.fft
 
-    from dofsynth.aperture import parse_aperture
     from dofsynth.color import highlight_boost
-    from dofsynth.planes import Plane
-    from dofsynth.render import render_planes
+    from dofsynth.optics.aperture import parse_aperture
+    from dofsynth.render import Plane, render_planes
 
     out = Path(args.out)
     if out.suffix.lower() not in (".png", ".exr"):

@@ -32,7 +32,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from dofsynth.sheets import write_html, write_sheet
+    from dofsynth.qa.html import write_html
+    from dofsynth.qa.sheets import write_sheet
 
     if not 16 <= args.thumb <= 2048:
         raise ValueError(f"--thumb must be between 16 and 2048 pixels, got {args.thumb}")

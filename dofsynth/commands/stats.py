@@ -24,7 +24,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from dofsynth.stats import write_stats
+    from dofsynth.qa.stats import write_stats
 
     from tqdm import tqdm
 

@@ -32,7 +32,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from dofsynth.verify import verify_dataset
+    from dofsynth.qa.verify import verify_dataset
 
     from tqdm import tqdm
 

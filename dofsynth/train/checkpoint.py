@@ -5,17 +5,17 @@
      "format": 1}
 
 `step` counts finished optimizer steps; (epoch, batch) is where the data stream stands, so a
-resumed run continues with the next batch. Files are written through a temporary name and a
-rename, so RUN/ckpt.pt is always complete.
+resumed run continues with the next batch. Files are written through a temporary name, fsync
+and a rename (dofsynth.files.AtomicFile), so RUN/ckpt.pt is always complete.
 """
 from __future__ import annotations
 
-import os
 import random
 from pathlib import Path
 
 import torch
 
+from dofsynth.files import AtomicFile
 from dofsynth.train.config import Config, from_dict
 from dofsynth.train.models import DeepLensNet
 
@@ -47,9 +47,8 @@ def save(path: str | Path, model, optimizer, step: int, epoch: int, batch: int, 
     state = {"model": unwrap(model).state_dict(), "optimizer": optimizer.state_dict(),
              "step": step, "epoch": epoch, "batch": batch, "config": cfg.to_dict(),
              "rng": rng_states(), "best_val": best_val, "format": FORMAT}
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    with AtomicFile(path) as fh:
+        torch.save(state, fh)
 
 
 def load(path: str | Path, map_location="cpu") -> dict:

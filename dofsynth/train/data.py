@@ -16,7 +16,8 @@ Colour: with [data] color = "srgb" (the default, as in the paper) images stay sR
 [0, 1]; with "linear" they are decoded to linear light. Crops are aligned to multiples of s, so
 the low-res crop is exactly the crop of the low-res image.
 
-Splitting: the shard list is shuffled per epoch (seed, epoch), then split across distributed
+Shards are those OUT/manifest.json lists (read with dofsynth.shards, the generator's own tar
+reader). Splitting: the shard list is shuffled per epoch (seed, epoch), then split across distributed
 ranks and DataLoader workers through webdataset's `split_by_node` / `split_by_worker`; when
 there are fewer shards than ranks x workers every reader opens every shard and keeps every
 (ranks x workers)-th sample instead, so small data sets never leave a reader empty. A shuffle
@@ -28,8 +29,8 @@ from __future__ import annotations
 
 import json
 import random
-import tarfile
-import zlib
+from itertools import islice
+from typing import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -37,31 +38,35 @@ import torch
 import webdataset as wds
 from torch.utils.data import DataLoader, IterableDataset
 
-from dofsynth.augment import corrupt_disparity, layers_from_record
 from dofsynth.color import srgb_to_linear
 from dofsynth.io import decode_exr, decode_image
-from dofsynth.train.config import Config
+from dofsynth.manifest import load_manifest, manifest_shard_infos
+from dofsynth.optics.coc import coc_radius
+from dofsynth.rng import SPLIT_ID
+from dofsynth.shards import read_shard
+from dofsynth.train.augment import corrupt_disparity, layers_from_record
+from dofsynth.train.config import Config, replace
 
 
 def find_shards(data_dir: str | Path, split: str) -> list[str]:
-    """The sorted shard paths OUT/<split>/<split>-NNNNNN.tar (temporary files are skipped)."""
-    folder = Path(data_dir) / split
-    shards = sorted(str(p) for p in folder.glob(f"{split}-*.tar"))
-    if not shards:
-        raise FileNotFoundError(f"{folder}: no shards {split}-NNNNNN.tar (is --data a dofsynth data set?)")
-    return shards
+    """The paths of the shards of `split` that OUT/manifest.json lists, in sample order."""
+    data_dir = Path(data_dir)
+    infos = manifest_shard_infos(load_manifest(data_dir)).get(split, [])
+    if not infos:
+        raise FileNotFoundError(f"{data_dir}: the data set has no {split} split (is --data a dofsynth data set?)")
+    return [str(data_dir / i.path) for i in sorted(infos, key=lambda i: i.first_index)]
+
+
+def raw_samples(shards) -> Iterator[dict]:
+    """Every sample of the shards as a webdataset-style dict: {"__key__": key, suffix: bytes}."""
+    for shard in shards:
+        for key, members in read_shard(shard):
+            yield {"__key__": key, **members}
 
 
 def peek_records(shard: str | Path, limit: int = 256) -> list[dict]:
-    """The JSON records of the first `limit` samples of one shard (reads no images)."""
-    records = []
-    with tarfile.open(shard) as tar:
-        for member in tar:
-            if member.name.endswith(".json"):
-                records.append(json.loads(tar.extractfile(member).read()))
-                if len(records) >= limit:
-                    break
-    return records
+    """The JSON records of the first `limit` samples of one shard."""
+    return [json.loads(s["json"]) for s in islice(raw_samples([shard]), limit)]
 
 
 def area_downsample(x: np.ndarray, factor: int) -> np.ndarray:
@@ -73,8 +78,9 @@ def area_downsample(x: np.ndarray, factor: int) -> np.ndarray:
 
 
 def signed_disparity(disparity, focus: float, max_coc: float, coc_ref: float):
-    """The network's depth input: (disparity - focus) * max_coc / coc_ref = c / r_max."""
-    return (disparity - focus) * (max_coc / coc_ref)
+    """The network's depth input: the signed CoC over the largest aperture's, c / r_max =
+    (disparity - focus) * max_coc / coc_ref."""
+    return coc_radius(disparity, focus, max_coc / coc_ref)
 
 
 def _chw(x: np.ndarray) -> torch.Tensor:
@@ -83,10 +89,11 @@ def _chw(x: np.ndarray) -> torch.Tensor:
 
 
 def sample_rng(seed: int, epoch: int, split: str, index: int) -> np.random.Generator:
-    return np.random.default_rng([seed, epoch, zlib.crc32(split.encode()), index])
+    """The generator of everything random about one training item (target, crop, corruption)."""
+    return np.random.default_rng([seed, epoch, SPLIT_ID[split], index])
 
 
-def decode_sample(sample: dict, cfg: Config, rng: np.random.Generator, *, crop: int | None = None,
+def training_item(sample: dict, cfg: Config, rng: np.random.Generator, *, crop: int | None = None,
                   target: int | None = None) -> dict:
     """Decode one raw webdataset sample (member suffix -> bytes) into a training item.
 
@@ -158,10 +165,8 @@ class DofShards(IterableDataset):
         rank, world, worker, workers = wds.utils.pytorch_worker_info()
         readers, slot = world * workers, rank * workers + worker
         if len(shards) >= readers:
-            urls = wds.split_by_worker(wds.split_by_node(iter(shards)))
-            return wds.tariterators.tarfile_samples({"url": u} for u in urls)
-        every = wds.tariterators.tarfile_samples({"url": u} for u in shards)
-        return (s for i, s in enumerate(every) if i % readers == slot)
+            return raw_samples(wds.split_by_worker(wds.split_by_node(iter(shards))))
+        return (s for i, s in enumerate(raw_samples(shards)) if i % readers == slot)
 
     def __iter__(self):
         samples = iter(self._raw_samples())
@@ -169,12 +174,12 @@ class DofShards(IterableDataset):
             rank, _, worker, _ = wds.utils.pytorch_worker_info()
             seed = int(np.random.SeedSequence([self.seed, self.epoch, rank, worker]).generate_state(1)[0])
             bufsize = self.cfg.data.shuffle_buffer
-            samples = wds.filters._shuffle(samples, bufsize, min(bufsize, 64), rng=random.Random(seed))
+            samples = wds.shuffle(bufsize, min(bufsize, 64), rng=random.Random(seed))(samples)
         epoch = self.epoch if self.train else 0
         for raw in samples:
             index = json.loads(raw["json"])["index"]
             rng = sample_rng(self.seed, epoch, self.split, int(index))
-            yield decode_sample(raw, self.cfg, rng, crop=self.cfg.data.crop)
+            yield training_item(raw, self.cfg, rng, crop=self.cfg.data.crop)
 
 
 def make_loader(data_dir: str | Path, split: str, cfg: Config, *, train: bool, seed: int,
@@ -190,7 +195,7 @@ def resolve(cfg: Config, data_dir: str | Path) -> Config:
     """Fill the config values that come from the data, reading only the JSON records of the
     first training shard: model.coc_ref = the largest max_coc seen (r_max, full-res px) and
     infer.low_res_side = the largest image side / 2**levels. Values already set are kept."""
-    from dofsynth.train.config import replace
+
 
     if cfg.model.coc_ref > 0 and cfg.infer.low_res_side > 0:
         return cfg

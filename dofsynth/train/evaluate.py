@@ -12,18 +12,19 @@ to RUN/eval.csv (one row per method) and RUN/eval.json (the table and every item
 """
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 
 import numpy as np
 import torch
-import webdataset as wds
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from dofsynth.color import linear_to_srgb, srgb_to_linear
+from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
+from dofsynth.optics.aperture import aperture_from_dict
+from dofsynth.render import Plane, render_planes
 from dofsynth.train.checkpoint import load_model
-from dofsynth.train.data import decode_sample, find_shards, sample_rng
+from dofsynth.train.data import find_shards, raw_samples, sample_rng, training_item
 
 METHODS = ("network", "classical", "all-in-focus")
 
@@ -32,23 +33,12 @@ def _hwc(t: torch.Tensor) -> np.ndarray:
     return t.detach().float().cpu().numpy().transpose(1, 2, 0)
 
 
-def _aperture(record: dict):
-    from dofsynth.aperture import Disk, Polygon
-
-    a = record.get("aperture") or {"kind": "disk"}
-    if a.get("kind") == "polygon":
-        return Polygon(blades=int(a["blades"]), rotation=float(a.get("rotation", 0.0)))
-    return Disk()
-
-
 def classical_render(image_linear: np.ndarray, disparity: np.ndarray, focus: float, max_coc: float,
                      record: dict) -> np.ndarray:
-    """The single-image classical render: one plane, alpha 1, the given disparity map."""
-    from dofsynth.planes import Plane
-    from dofsynth.render import render_planes
-
+    """The single-image classical render: one plane, alpha 1, the given disparity map, the
+    sample's aperture."""
     plane = Plane(image_linear, alpha=np.ones(disparity.shape, np.float32), disparity=disparity)
-    return render_planes([plane], focus, max_coc, _aperture(record))
+    return render_planes([plane], focus, max_coc, aperture_from_dict(record["aperture"]))
 
 
 def _metrics(pred_srgb: np.ndarray, target_srgb: np.ndarray) -> dict:
@@ -69,14 +59,12 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
     model, cfg = load_model(run_dir, device)
     to_srgb = (lambda x: x) if cfg.data.color == "srgb" else linear_to_srgb
     items = []
-    shards = find_shards(data_dir, split)
-    samples = wds.tariterators.tarfile_samples({"url": u} for u in shards)
-    for n, raw in enumerate(samples):
+    for n, raw in enumerate(raw_samples(find_shards(data_dir, split))):
         if limit is not None and n >= limit:
             break
         record = json.loads(raw["json"])
         for t in range(len(record["targets"])):
-            item = decode_sample(raw, cfg, sample_rng(seed, t, split, int(record["index"])), crop=None, target=t)
+            item = training_item(raw, cfg, sample_rng(seed, t, split, int(record["index"])), crop=None, target=t)
             target = to_srgb(_hwc(item["target"]))
             image = _hwc(item["image"])
             with torch.inference_mode():
@@ -99,11 +87,8 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
             table.append({"method": method, "psnr": float(np.mean([r["psnr"] for r in rows])),
                           "ssim": float(np.mean([r["ssim"] for r in rows])), "n": len(rows)})
     result = {"split": split, "seed": seed, "table": table, "items": items}
-    with open(run_dir / "eval.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=["method", "psnr", "ssim", "n"])
-        w.writeheader()
-        w.writerows(table)
-    (run_dir / "eval.json").write_text(json.dumps(result, indent=1, sort_keys=True) + "\n")
+    atomic_write_bytes(run_dir / "eval.csv", csv_text(["method", "psnr", "ssim", "n"], table).encode())
+    atomic_write_bytes(run_dir / "eval.json", canonical_json(result, indent=1))
     return result
 
 

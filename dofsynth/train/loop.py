@@ -19,7 +19,6 @@ schedule, which always runs to train.max_steps. A config other than the stored o
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 import sys
@@ -31,6 +30,7 @@ import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 
+from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
 from dofsynth.train import checkpoint
 from dofsynth.train.config import Config, from_dict, to_toml
 from dofsynth.train.data import find_shards, make_loader, resolve
@@ -72,10 +72,7 @@ def trim_log(path: Path, step: int) -> None:
         rows = list(csv.DictReader(fh))
     if all(int(r["step"]) <= step for r in rows):
         return
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=LOG_FIELDS)
-        w.writeheader()
-        w.writerows(r for r in rows if int(r["step"]) <= step)
+    atomic_write_bytes(path, csv_text(LOG_FIELDS, [r for r in rows if int(r["step"]) <= step]).encode())
 
 
 def to_device(batch: dict, device) -> dict:
@@ -146,10 +143,10 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
                              "use a new --run folder or the same config")
     if master:
         run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "config.toml").write_text(to_toml(cfg))
+        atomic_write_bytes(run_dir / "config.toml", to_toml(cfg).encode())
         env = {"torch": torch.__version__, "python": sys.version.split()[0], "device": device,
                "world_size": world, "cuda": torch.cuda.get_device_name(device) if cuda else None}
-        (run_dir / "env.json").write_text(json.dumps(env, indent=2, sort_keys=True) + "\n")
+        atomic_write_bytes(run_dir / "env.json", canonical_json(env, indent=2))
 
     # -- model, optimizer, precision -----------------------------------------------------------
     t = cfg.train

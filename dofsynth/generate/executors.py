@@ -1,9 +1,10 @@
 """Executors: who renders the shards of a `generate` run.
 
 One small interface: `Executor.run(recipe, out, tasks, limits, on_samples, on_submitted)`
-submits one call of the pure `generate_shard` per `ShardTask` and yields a `ShardDone` per
-finished shard, in any order. Everything else (the plan, the lock, the progress file and bar,
-resume, the manifest and the summary) stays in `dofsynth.generate`, the same for every executor.
+submits one call of the pure `generate_shard` (dofsynth.generate.worker) per `ShardTask` and
+yields a `ShardDone` per finished shard, in any order. Everything else (the plan, the lock, the
+progress file and bar, resume, the manifest and the summary) stays in dofsynth.generate.run,
+the same for every executor.
 
 - `LocalExecutor(workers)`: in this process (workers=1) or a `spawn` process pool whose workers
   take this process's asset library (built once per run); progress is reported per sample.
@@ -19,22 +20,18 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import queue as queue_mod
-import signal
-import sys
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
-from dofsynth.generate import ShardTask, _library_for, generate_shard, peak_rss_mb
+from dofsynth.generate.plan import ShardTask
+from dofsynth.generate.worker import generate_shard, library_for, peak_rss_mb, setup_process
 from dofsynth.shards import ShardInfo
 
 EXECUTORS = ("local", "ray")
 RAY_INSTALL_HINT = "pip install 'dofsynth[ray]'  (or: pip install 'ray>=2.9')"
-# Test hook: in a Ray task, if the file <dir>/<split>-<shard:06d>.kill exists once the shard's
-# first sample is written, the task deletes it and SIGKILLs its own worker (the retry goes on).
-KILL_HOOK_ENV = "DOFSYNTH_TEST_KILL_DIR"
 
 OnSamples = Callable[[str, int], None]   # (shard path, samples just written)
 
@@ -84,45 +81,10 @@ def _shard_error(task: ShardTask, exc: BaseException) -> Exception:
 _POOL: dict = {"recipe": None, "queue": None}
 
 
-# glibc malloc settings of a worker process (mallopt parameter numbers from malloc.h). By
-# default glibc gives every block above a dynamic threshold (<= 32 MiB) its own mmap and hands
-# freed heap tops above 2x that threshold back to the kernel, so each FFT tile, strip and frame
-# of a sample comes back as fresh pages that are zeroed and faulted in again on first touch
-# (0.1-0.45 s per 192 MiB at 4096 px on a VM). A worker does one thing, the same sample shape
-# again and again: keeping blocks up to WORKER_MMAP_THRESHOLD (an RGB float32 frame at 4096
-# px is 192 MiB) on the heap and up to WORKER_TRIM_THRESHOLD of free heap reuses those pages
-# (docs/generate.md, "Speed"). Cutout frames, mostly zeros, are `compose.lazy_zeros` maps of
-# their own, so calloc does not clear them in full on the heap; larger frames still map.
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-WORKER_MMAP_THRESHOLD = 256 << 20
-WORKER_TRIM_THRESHOLD = 1024 << 20
-MALLOC_ENV = "DOFSYNTH_WORKER_MALLOC"  # "default": leave glibc's settings (benchmarks compare)
-
-
-def tune_malloc() -> bool:
-    """Apply the worker malloc settings to this process (glibc only; True if applied)."""
-    setting = os.environ.get(MALLOC_ENV, "")
-    if setting == "default" or not sys.platform.startswith("linux"):
-        return False
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        mmap_t, trim_t = WORKER_MMAP_THRESHOLD, WORKER_TRIM_THRESHOLD
-        if setting:  # "MMAP_MIB,TRIM_MIB" (benchmarks)
-            mmap_t, trim_t = (int(v) << 20 for v in setting.split(","))
-        return bool(libc.mallopt(_M_MMAP_THRESHOLD, mmap_t)) and bool(libc.mallopt(_M_TRIM_THRESHOLD, trim_t))
-    except (OSError, AttributeError, ValueError):
-        return False
-
-
 def _init_worker(recipe, q, library) -> None:
-    import cv2
-
-    tune_malloc()
-    cv2.setNumThreads(1)  # one core per worker: no oversubscription
+    setup_process()
     _POOL["recipe"], _POOL["queue"] = recipe, q
-    _library_for(recipe, library)  # the parent's: asset folders scanned and hashed once
+    library_for(recipe, library)  # the parent's: asset folders scanned and hashed once
 
 
 def _worker_shard(out: str, task: ShardTask, limit: int | None) -> tuple[ShardInfo, float, float]:
@@ -158,7 +120,7 @@ class LocalExecutor(Executor):
 
     @staticmethod
     def _in_process(recipe, out, tasks, limits, on_samples, on_submitted):
-        library = _library_for(recipe) if tasks else None
+        library = library_for(recipe) if tasks else None
         if on_submitted is not None:
             on_submitted()
         for t in tasks:
@@ -174,7 +136,7 @@ class LocalExecutor(Executor):
         ctx = mp.get_context("spawn")
         q = ctx.Queue() if on_samples is not None else None
         ex = ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)), mp_context=ctx,
-                                 initializer=_init_worker, initargs=(recipe, q, _library_for(recipe)))
+                                 initializer=_init_worker, initargs=(recipe, q, library_for(recipe)))
 
         def drain():
             while q is not None:
@@ -215,35 +177,18 @@ def ray_available() -> bool:
     return True
 
 
-def _kill_hook(split: str, index: int):
-    """The test hook of KILL_HOOK_ENV as an on_sample callback (None when not armed)."""
-    folder = os.environ.get(KILL_HOOK_ENV)
-    if not folder:
-        return None
-    arm = Path(folder) / f"{split}-{index:06d}.kill"
-
-    def hook(_n: int) -> None:
-        try:
-            arm.unlink()  # claim it: only one attempt dies
-        except FileNotFoundError:
-            return
-        os.kill(os.getpid(), signal.SIGKILL)
-
-    return hook
-
-
-def _ray_shard(recipe, library, out: str, split: str, index: int, limit: int | None) -> tuple[ShardInfo, float, float]:
+def _ray_shard(recipe, library, out: str, split: str, index: int, limit: int | None,
+               task_hook=None) -> tuple[ShardInfo, float, float]:
     """Ray task: (ShardInfo, seconds inside generate_shard, this worker's peak MiB so far).
     `library`: the driver's asset library (one object in Ray's store for all tasks), so no
     worker scans and hashes the asset folders again; the paths in it must be the same on every
-    node (a shared file system), as the recipe's already are."""
-    import cv2
-
-    tune_malloc()  # a Ray worker process only runs such tasks
-    cv2.setNumThreads(1)
+    node (a shared file system), as the recipe's already are. `task_hook(split, index)` is
+    called in the task after each sample is written (RayExecutor's `task_hook`)."""
+    setup_process()  # a Ray worker process only runs such tasks
     t0 = time.perf_counter()
-    info = generate_shard(recipe, out, split, index, limit=limit, library=_library_for(recipe, library),
-                          on_sample=_kill_hook(split, index))
+    on_sample = (lambda _n: task_hook(split, index)) if task_hook is not None else None
+    info = generate_shard(recipe, out, split, index, limit=limit, library=library_for(recipe, library),
+                          on_sample=on_sample)
     return info, time.perf_counter() - t0, peak_rss_mb()
 
 
@@ -252,11 +197,13 @@ class RayExecutor(Executor):
     Ray is already initialised in this process), "auto" or "HOST:PORT" joins a running cluster
     (`ray start --head`). `max_retries`: retries of a task whose worker died.
     `max_in_flight`: at most this many shard tasks submitted at once (None: all; Ray runs one
-    per free CPU)."""
+    per free CPU). `task_hook(split, shard_index)`: a picklable callable run inside each task
+    after every sample it writes (fault injection, custom progress)."""
 
     name = "ray"
 
-    def __init__(self, address: str | None = None, max_retries: int = 3, max_in_flight: int | None = None):
+    def __init__(self, address: str | None = None, max_retries: int = 3, max_in_flight: int | None = None,
+                 task_hook=None):
         if not ray_available():
             raise ValueError(f"--executor ray needs Ray, which is not installed; install it with: {RAY_INSTALL_HINT}")
         if int(max_retries) != max_retries or max_retries < 0:
@@ -264,6 +211,7 @@ class RayExecutor(Executor):
         if max_in_flight is not None and (int(max_in_flight) != max_in_flight or max_in_flight < 1):
             raise ValueError(f"--workers must be an integer >= 1, got {max_in_flight}")
         self.address, self.max_retries, self.max_in_flight = address, int(max_retries), max_in_flight
+        self.task_hook = task_hook
 
     def describe(self) -> str:
         return f"ray{' ' + self.address if self.address else ''}, max {self.max_retries} retries"
@@ -295,7 +243,7 @@ class RayExecutor(Executor):
 
         self.prepare()
         remote = ray.remote(num_cpus=1, max_retries=self.max_retries, retry_exceptions=False)(_ray_shard)
-        recipe_ref, library_ref = ray.put(recipe), ray.put(_library_for(recipe))
+        recipe_ref, library_ref = ray.put(recipe), ray.put(library_for(recipe))
         out = os.path.abspath(out)  # workers run elsewhere (another cwd, another node)
         window = self.max_in_flight or len(tasks) or 1
         todo, refs = list(tasks), {}
@@ -303,7 +251,8 @@ class RayExecutor(Executor):
             def submit():
                 while todo and len(refs) < window:
                     t = todo.pop(0)
-                    refs[remote.remote(recipe_ref, library_ref, out, t.split, t.index, limits[t.split])] = t
+                    refs[remote.remote(recipe_ref, library_ref, out, t.split, t.index, limits[t.split],
+                                       self.task_hook)] = t
 
             submit()
             if on_submitted is not None:

@@ -23,9 +23,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dofsynth import dataset as ds
-from dofsynth.io import atomic_write_bytes, decode_exr, decode_image, encode_png
-from dofsynth.sheets import BG, DIM, FG, put_text, text_size
+from dofsynth.files import atomic_write_bytes
+from dofsynth.io import decode_exr, decode_image, encode_png
+from dofsynth.optics.coc import coc_radius
+from dofsynth.qa import dataset as ds
+from dofsynth.qa.draw import BG, DIM, FG, put_text, text_size
 
 UNIT_BINS = 20                 # bins over [0, 1] for disparities, focus and coverage
 COC_BINS = 24
@@ -101,7 +103,7 @@ def split_stats(out_dir, split: str, progress=None) -> dict:
         vals["cover_middle"].append(float(np.mean(cover[:, :, 1] > 0.5)))
         for t in rec["targets"]:
             vals["focus"].append(t["focus"])
-            coc.add(float(t["max_coc"]) * (depth - np.float32(t["focus"])))
+            coc.add(coc_radius(depth, t["focus"], t["max_coc"]))
         for role, table in assets.items():
             a = rec.get("assets", {}).get(role)
             if isinstance(a, dict):

@@ -21,11 +21,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from dofsynth.scene import background_disparity
+
 MORPH_OPS = ("dilate", "erode")
 
 
 @dataclass(frozen=True)
-class Layers:
+class DepthLayers:
     """The layered disparity of a sample, back to front.
 
     background: (H, W) float32 disparity of the background plane (no foreground).
@@ -36,28 +38,14 @@ class Layers:
     planes: tuple[tuple[np.ndarray, float], ...]
 
 
-def background_disparity(record: dict, shape: tuple[int, int]) -> np.ndarray:
-    """The background disparity map (H, W) from a sample record's `background` block
-    (docs/FORMAT.md: "horizontal" runs from b0 at the left pixel column to b1 at the right one,
-    "vertical" from b0 at the bottom row to b1 at the top row, linearly, as dofsynth.compose)."""
-    h, w = shape
+def record_background(record: dict, shape: tuple[int, int]) -> np.ndarray:
+    """The background disparity map (H, W) of a sample record's `background` block
+    (docs/FORMAT.md), as the generator made it (dofsynth.scene.background_disparity)."""
     bg = record["background"]
-    b0 = float(bg["b0"])
-    b1 = float(bg.get("b1", b0) if bg.get("b1") is not None else b0)
-    if bg["mode"] == "flat":
-        return np.full((h, w), b0, np.float32)
-    if bg["mode"] != "ramp":
-        raise ValueError(f"record {record.get('key')}: unknown background mode {bg['mode']!r}")
-    if bg["direction"] == "horizontal":
-        t = (np.linspace(0.0, 1.0, w) if w > 1 else np.zeros(1))[None, :]
-    elif bg["direction"] == "vertical":
-        t = (np.linspace(1.0, 0.0, h) if h > 1 else np.zeros(1))[:, None]
-    else:
-        raise ValueError(f"record {record.get('key')}: unknown ramp direction {bg['direction']!r}")
-    return np.broadcast_to(b0 + (b1 - b0) * t, (h, w)).astype(np.float32)
+    return background_disparity(bg["mode"], float(bg["b0"]), float(bg["b1"]), bg.get("direction"), *shape)
 
 
-def layers_from_record(record: dict, cover: np.ndarray) -> Layers:
+def layers_from_record(record: dict, cover: np.ndarray) -> DepthLayers:
     """Layers from a record and its cover image (H, W, >=2) in [0, 1]: R = front alpha,
     G = middle alpha (docs/FORMAT.md). Planes come back to front: middle, then front."""
     h, w = cover.shape[:2]
@@ -65,7 +53,7 @@ def layers_from_record(record: dict, cover: np.ndarray) -> Layers:
         (cover[:, :, 1] > 0.5, float(record["middle"]["disparity"])),
         (cover[:, :, 0] > 0.5, float(record["front"]["disparity"])),
     )
-    return Layers(background_disparity(record, (h, w)), planes)
+    return DepthLayers(record_background(record, (h, w)), planes)
 
 
 def _odd_between(rng: np.random.Generator, lo: int, hi: int) -> int:
@@ -110,7 +98,7 @@ def morph_mask(mask: np.ndarray, op: str, kernel: int) -> np.ndarray:
     return out.astype(bool)
 
 
-def apply_corruption(disparity: np.ndarray, layers: Layers, params: dict) -> np.ndarray:
+def apply_corruption(disparity: np.ndarray, layers: DepthLayers, params: dict) -> np.ndarray:
     """Apply sampled corruption parameters to a clean disparity map (H, W) float32 in [0, 1].
 
     Order: plane morphology (back to front), shift, edge blur, noise, quantization; the result
@@ -149,7 +137,7 @@ def apply_corruption(disparity: np.ndarray, layers: Layers, params: dict) -> np.
     return np.clip(d, 0.0, 1.0).astype(np.float32)
 
 
-def corrupt_disparity(disparity: np.ndarray, layers: Layers, cfg, rng: np.random.Generator
+def corrupt_disparity(disparity: np.ndarray, layers: DepthLayers, cfg, rng: np.random.Generator
                       ) -> tuple[np.ndarray, dict]:
     """Sample and apply a corruption: returns (corrupted (H, W) float32, params)."""
     params = sample_corruption(len(layers.planes), cfg, rng)

@@ -18,6 +18,9 @@ import hashlib
 import cv2
 import numpy as np
 
+from dofsynth.assets.decode import KINDS, Asset, alpha_bbox
+from dofsynth.image import to_uint8
+
 BUILTIN_SEED = 20181204  # fixed: the built-in assets never change with a recipe's seed
 FG_SIZE = 384
 _SS = 4  # supersampling of mattes
@@ -60,15 +63,11 @@ def _skimage(name: str) -> np.ndarray:
 
     img = np.asarray(getattr(skimage.data, name)())
     if img.dtype != np.uint8:
-        img = (np.clip(img.astype(np.float64), 0, 1) * 255 + 0.5).astype(np.uint8) if img.dtype.kind == "f" else img.astype(np.uint8)
+        img = to_uint8(img.astype(np.float64)) if img.dtype.kind == "f" else img.astype(np.uint8)
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[:, :, :3]
     img.setflags(write=False)
     return img
-
-
-def _u8(x: np.ndarray) -> np.ndarray:
-    return np.floor(np.clip(x, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
 # ------------------------------------------------------------------------------ backgrounds
@@ -83,13 +82,13 @@ def _noise_bg(rng: np.random.Generator, h: int = 512, w: int = 768) -> np.ndarra
         spec[0, 0] = 0
         x = np.fft.irfft2(spec, s=(h, w))
         out[:, :, c] = (x - x.min()) / (x.max() - x.min())
-    return _u8(0.1 + 0.8 * out)
+    return to_uint8(0.1 + 0.8 * out)
 
 
 def _lights_bg(rng: np.random.Generator, h: int = 512, w: int = 768) -> np.ndarray:
     yy, xx = np.mgrid[0:h, 0:w] / max(h, w)
     base = np.stack([0.05 + 0.15 * xx, 0.04 + 0.10 * yy, 0.12 + 0.12 * (1 - xx)], axis=2)
-    img = _u8(base)
+    img = to_uint8(base)
     for _ in range(90):
         cx, cy = int(rng.integers(0, w)), int(rng.integers(0, h))
         r = int(rng.integers(1, 5))
@@ -106,12 +105,12 @@ def _checker_bg(rng: np.random.Generator, h: int = 512, w: int = 768) -> np.ndar
     stripes = 0.5 + 0.5 * np.sin(2 * np.pi * (xx + yy) / (cell * 0.37))
     a, b = rng.uniform(0.15, 0.9, 3), rng.uniform(0.15, 0.9, 3)
     img = check[..., None] * a + (1 - check[..., None]) * b
-    return _u8(img * (0.85 + 0.15 * stripes[..., None]))
+    return to_uint8(img * (0.85 + 0.15 * stripes[..., None]))
 
 
 # Generated pixels by "bg/NAME" or "fg/NAME": drawn once per process, or adopted from the process
 # that pickled an AssetLibrary listing them (spawn workers, Ray tasks), which then need not draw
-# them again (dofsynth.assets.AssetLibrary.__getstate__).
+# them again (dofsynth.assets.library.AssetLibrary.__getstate__).
 _PIXELS: dict[str, object] = {}
 
 
@@ -146,7 +145,7 @@ def _draw_background(name: str) -> np.ndarray:
     elif name in _SKIMAGE_GREY:
         tint = np.asarray(_SKIMAGE_GREY[name][0])
         g = _skimage(name).astype(np.float64) / 255.0
-        img = _u8(g[:, :, None] * tint)
+        img = to_uint8(g[:, :, None] * tint)
     elif name in _PROCEDURAL_BG:
         maker = {"noise": _noise_bg, "lights": _lights_bg, "checker": _checker_bg}[name]
         img = maker(_rng(0, _PROCEDURAL_BG.index(name)))
@@ -210,7 +209,7 @@ class _Matte:
 
     def result(self) -> np.ndarray:
         small = cv2.resize(self.alpha, (FG_SIZE, FG_SIZE), interpolation=cv2.INTER_AREA)
-        return _u8(small)
+        return to_uint8(small)
 
 
 def _strands(m: _Matte, rng, starts, dirs, length, thickness: int, wave: float) -> np.ndarray:
@@ -291,7 +290,7 @@ def _draw_foreground(kind: str, rng: np.random.Generator) -> np.ndarray:
             cv2.line(c, (int(s * 0.1 * _SS), int(v * _SS)), (int(s * 0.9 * _SS), int(v * _SS)), 255, width)
         cv2.rectangle(c, (int(s * 0.1 * _SS),) * 2, (int(s * 0.9 * _SS),) * 2, 255, int(8 * _SS))
         m.add(c)
-    else:  # pragma: no cover - the table above is closed
+    else:
         raise KeyError(kind)
     return m.result()
 
@@ -324,3 +323,24 @@ def pixels_sha256(*arrays: np.ndarray) -> str:
         h.update(repr((a.shape, str(a.dtype))).encode())
         h.update(np.ascontiguousarray(a).tobytes())
     return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=None)
+def builtin_assets(kind: str) -> tuple[Asset, ...]:
+    """The built-in assets of `kind`, sorted by id (generated once per process)."""
+    out = []
+    if kind == "background":
+        for name in BACKGROUND_NAMES:
+            px = background_pixels(name)
+            out.append(Asset(id=f"builtin:bg/{name}", kind=kind, path=f"builtin:bg/{name}",
+                             sha256=pixels_sha256(px), size=(px.shape[1], px.shape[0]),
+                             licence=background_licence(name)))
+    elif kind == "foreground":
+        for name in FOREGROUND_NAMES:
+            rgb, a = foreground_pixels(name)
+            out.append(Asset(id=f"builtin:fg/{name}", kind=kind, path=f"builtin:fg/{name}",
+                             sha256=pixels_sha256(rgb, a), size=(rgb.shape[1], rgb.shape[0]),
+                             licence=PROCEDURAL_LICENCE, bbox=alpha_bbox(a, name)))
+    else:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    return tuple(out)

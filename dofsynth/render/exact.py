@@ -14,7 +14,9 @@ import math
 import cv2
 import numpy as np
 
-from dofsynth.aperture import Aperture, coverage
+from dofsynth.optics.aperture import Aperture
+from dofsynth.optics.coc import coc_radius
+from dofsynth.optics.kernel import coverage
 
 FIXED_POINT_ITERATIONS = 5
 
@@ -52,8 +54,9 @@ def _warp(pm, cmap, px, py, backmost, gx, gy):
     return cv2.remap(pm, mx, my, cv2.INTER_LINEAR, borderMode=border, borderValue=(0, 0, 0, 0))
 
 
-def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, samples: int | None = None):
-    """Aperture-sampled render of validated planes; linear RGB (H, W, 3) float32.
+def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, options) -> np.ndarray:
+    """Aperture-sampled render of validated planes; linear RGB (3, H, W) float32. `options`: a
+    dofsynth.render.RenderOptions (its `samples`: aperture points, None = 0.5 px steps).
 
     Slow: cost grows with the number of aperture points (about pi * (2 * max|c|)^2 for a disk
     by default). Meant as the reference for the fast per-plane renderer and for small images.
@@ -66,13 +69,10 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, sampl
         a = np.asarray(plane.alpha, np.float32)
         pm = np.concatenate([np.asarray(plane.rgb, np.float32) * a[:, :, None], a[:, :, None]], axis=2)
         d = plane.constant_disparity()
-        if d is not None:
-            c = np.float32(max_coc * (d - focus))
-        else:
-            c = (np.float32(max_coc) * (plane.disparity_map() - np.float32(focus))).astype(np.float32)
+        c = np.float32(coc_radius(d, focus, max_coc)) if d is not None else coc_radius(plane.disparity_map(), focus, max_coc)
         cmax = max(cmax, float(np.max(np.abs(c))))
         prepared.append((np.ascontiguousarray(pm), c))
-    px, py, wt = aperture_samples(aperture, cmax, samples)
+    px, py, wt = aperture_samples(aperture, cmax, options.samples)
     acc = np.zeros((H, W, 4), np.float64)
     for x, y, w in zip(px, py, wt):
         comp = np.zeros((H, W, 4), np.float32)
@@ -80,4 +80,4 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, sampl
             warped = _warp(pm, c, x, y, i == 0, gx, gy)
             comp = warped + (1.0 - warped[:, :, 3:4]) * comp
         acc += w * comp
-    return np.ascontiguousarray(acc[:, :, :3], dtype=np.float32)
+    return np.ascontiguousarray(acc[:, :, :3].transpose(2, 0, 1), dtype=np.float32)

@@ -1,8 +1,8 @@
 """Read a finished data set folder (docs/FORMAT.md): its manifest, its shards, its samples.
 
-A small reader for the QA tools (`sheet`, `stats`, `verify`) built on the generator's own
-readers: `manifest.load_manifest` / `manifest_shard_infos`, `shards.read_shard` (plain
-`tarfile`, no torch import) and `record.decode_sample`. Nothing here writes into the data set.
+A small reader for the QA tools (`sheet`, `stats`, `verify`, the HTML page) built on the
+generator's own readers: dofsynth.manifest, dofsynth.shards (plain `tarfile`, no torch
+import) and dofsynth.record.decode_sample. Nothing here writes into the data set.
 """
 from __future__ import annotations
 
@@ -10,16 +10,12 @@ from pathlib import Path
 from typing import Iterator
 
 from dofsynth.manifest import MANIFEST_NAME, ManifestError, load_manifest, manifest_shard_infos
+from dofsynth.recipe import recipe_from_text
 from dofsynth.record import SampleDecodeError, decode_sample
-from dofsynth.shards import ShardError, ShardInfo, read_shard, sample_key
+from dofsynth.shards import ShardError, ShardInfo, read_shard
 
-MANIFEST = MANIFEST_NAME
 # Every error a damaged data set can raise while being read (all are ValueErrors naming the file).
 READ_ERRORS = (ManifestError, ShardError, SampleDecodeError)
-
-__all__ = ["MANIFEST", "READ_ERRORS", "ShardInfo", "load", "manifest_splits", "manifest_shards",
-           "split_keys", "sample_key", "iter_shard", "iter_samples", "read_samples", "decode_sample", "load_manifest",
-           "read_members", "read_members_many", "recipe_from_manifest"]
 
 
 def load(out_dir: str | Path) -> dict:
@@ -49,11 +45,6 @@ def split_keys(manifest: dict, split: str) -> list[str]:
     return [k for sh in manifest_shards(manifest, split) for k in sh.keys()]
 
 
-def iter_shard(path: str | Path) -> Iterator[tuple[str, dict[str, bytes]]]:
-    """(key, {suffix: bytes}) per sample of one shard, in file order (`shards.read_shard`)."""
-    return read_shard(path)
-
-
 def iter_samples(out_dir: str | Path, split: str, decode: bool = True) -> Iterator[dict]:
     """Every sample of a split in manifest order: `record.decode_sample` dicts ({"key",
     "record", "aif", "depth", "cover", "dof"}), or with `decode=False` {"key", "members"}."""
@@ -65,29 +56,14 @@ def iter_samples(out_dir: str | Path, split: str, decode: bool = True) -> Iterat
 
 def read_members_many(out_dir: str | Path, split: str, keys) -> dict[str, dict[str, bytes]]:
     """{key: {suffix: bytes}} for the given keys of `split`. Opens only the shards that hold
-    them and reads only their members (tar headers of the others are skipped, not read), so a
-    few samples of a large data set come quickly."""
-    import tarfile
-
+    them and reads only their members, so a few samples of a large data set come quickly."""
     out_dir = Path(out_dir)
     wanted = set(keys)
     found: dict[str, dict[str, bytes]] = {}
     for sh in manifest_shards(load(out_dir), split):
         here = wanted & set(sh.keys())
-        if not here:
-            continue
-        path = out_dir / sh.path
-        try:
-            with tarfile.open(path, "r:") as tar:
-                for info in tar:
-                    key, _, suffix = info.name.rsplit("/", 1)[-1].partition(".")
-                    if key in here and info.isfile():
-                        data = tar.extractfile(info).read()
-                        if len(data) != info.size:
-                            raise ShardError(f"{path}: member {info.name} is truncated")
-                        found.setdefault(key, {})[suffix] = data
-        except (tarfile.TarError, EOFError, OSError) as exc:
-            raise ShardError(f"{path}: unreadable tar ({exc})") from exc
+        if here:
+            found.update(read_shard(out_dir / sh.path, keys=here))
     missing = [k for k in keys if k not in found]
     if missing:
         raise ValueError(f"{out_dir}: split {split!r} has no samples {missing[:5]}")
@@ -100,20 +76,13 @@ def read_samples(out_dir: str | Path, split: str, keys: list[str]) -> list[dict]
     return [decode_sample(raw[k], k) for k in keys]
 
 
-def read_members(out_dir: str | Path, split: str, key: str) -> dict[str, bytes]:
-    """The raw members of one sample."""
-    return read_members_many(out_dir, split, [key])[key]
-
-
 def recipe_from_manifest(manifest: dict, out_dir: str | Path):
     """The recipe embedded in the manifest, parsed from its stored text as the generator parsed
     it. Relative asset folders resolve against the recorded recipe's folder when it still
     exists, else against the data set folder."""
-    from dofsynth.config import recipe_from_text
-
     rec = manifest.get("recipe")
     if not isinstance(rec, dict) or not isinstance(rec.get("text"), str):
-        raise ValueError(f"{Path(out_dir) / MANIFEST}: holds no recipe text")
+        raise ValueError(f"{Path(out_dir) / MANIFEST_NAME}: holds no recipe text")
     path = rec.get("path")
     base = Path(path).parent if path and Path(path).parent.is_dir() else Path(out_dir)
-    return recipe_from_text(rec["text"], path or f"{Path(out_dir) / MANIFEST} (recipe)", base)
+    return recipe_from_text(rec["text"], path or f"{Path(out_dir) / MANIFEST_NAME} (recipe)", base)

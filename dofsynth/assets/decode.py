@@ -1,0 +1,112 @@
+"""One asset and its pixels: the `Asset` record, `AssetError`, and the decoding and checks that
+scanning and loading share (size, alpha, colour to linear light)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dofsynth.color import srgb8_to_linear, srgb_to_linear
+from dofsynth.io import decode_exr, decode_image, unit_float
+
+MIN_SIDE = 64
+KINDS = ("background", "foreground")
+
+
+class AssetError(ValueError):
+    """A bad or changed asset; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class Asset:
+    id: str                          # "bg/REL" or "fg/REL" (REL: path under the root, no suffix); builtin:...
+    kind: str                        # "background" | "foreground"
+    path: str                        # absolute path, or "builtin:bg/NAME"
+    sha256: str                      # of the file bytes (builtin: of the generated pixels)
+    size: tuple[int, int]            # (w, h)
+    licence: str = "unknown"
+    alpha_path: str | None = None    # fg/ + alpha/ layout: the alpha file
+    alpha_sha256: str | None = None
+    bbox: tuple[int, int, int, int] | None = None  # (x, y, w, h) where alpha > 0; None = whole image
+
+    @property
+    def extent(self) -> tuple[int, int, int, int]:
+        """(x, y, w, h) of the part of the image that is placed: the alpha's bbox, or all."""
+        return self.bbox if self.bbox is not None else (0, 0, self.size[0], self.size[1])
+
+
+def is_exr(path: str) -> bool:
+    return path.lower().endswith(".exr")
+
+
+def decode_asset(data: bytes, path: str, codes: bool = False) -> np.ndarray:
+    """(H, W, C) pixels of an asset file: float32 (sRGB-encoded [0, 1] for 8/16-bit files,
+    the stored values for EXR); with `codes`, 8-bit files come back as their uint8 codes (RGB(A)
+    order), so the loaders linearize through the exact 256-entry table. AssetError names a bad file."""
+    try:
+        if is_exr(path):
+            return decode_exr(data, path, channels=None)
+        img = decode_image(data, path, raw=True)
+        return img if codes and img.dtype == np.uint8 else unit_float(img, path)
+    except ValueError as exc:
+        raise AssetError(str(exc)) from exc
+
+
+def image_header(path: str) -> tuple[int, int, int]:
+    """(w, h, channels) from the file header only."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise AssetError(f"{path}: not a readable image ({oiio.geterror().strip()})")
+    try:
+        spec = inp.spec()
+        return spec.width, spec.height, spec.nchannels
+    finally:
+        inp.close()
+
+
+def check_size(path: str, w: int, h: int) -> None:
+    if min(w, h) < MIN_SIDE:
+        raise AssetError(f"{path}: tiny image ({w}x{h}); need at least {MIN_SIDE} px on each side")
+
+
+def alpha_of(img: np.ndarray, path: str, is_cutout: bool) -> np.ndarray:
+    """The alpha channel of a cutout (RGBA or grey + alpha), or of a matte file (its alpha
+    channel if it has one, else its first channel)."""
+    c = img.shape[2]
+    if is_cutout:
+        if c not in (2, 4):
+            raise AssetError(f"{path}: foreground without alpha ({c} channels; need RGBA or grey+alpha, "
+                             f"or put it in fg/ with its matte in alpha/)")
+        return img[:, :, c - 1]
+    return img[:, :, c - 1] if c in (2, 4) else img[:, :, 0]
+
+
+def alpha_bbox(alpha: np.ndarray, path: str) -> tuple[int, int, int, int]:
+    """Refuse a non-finite or empty alpha; return the bbox (x, y, w, h) of alpha > 0."""
+    if not np.all(np.isfinite(alpha)):
+        raise AssetError(f"{path}: alpha contains NaN or inf")
+    on = alpha > 0
+    if not on.any():
+        raise AssetError(f"{path}: empty alpha (fully transparent)")
+    rows, cols = np.flatnonzero(on.any(axis=1)), np.flatnonzero(on.any(axis=0))
+    return int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
+
+
+def unit_alpha(a: np.ndarray) -> np.ndarray:
+    """An alpha channel as float32 in [0, 1] (uint8 codes / 255)."""
+    return a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a
+
+
+def colour_linear(img: np.ndarray, path: str) -> np.ndarray:
+    """The colour channels of decoded pixels as linear-light RGB float32 (grey replicated)."""
+    c = img.shape[2]
+    colour = img[:, :, :1] if c in (1, 2) else img[:, :, :3]
+    if colour.shape[2] == 1:
+        colour = np.repeat(colour, 3, axis=2)
+    if colour.dtype == np.uint8:
+        return srgb8_to_linear(colour)
+    if is_exr(path):
+        return np.clip(colour, 0.0, None).astype(np.float32)
+    return srgb_to_linear(colour)

@@ -1,0 +1,177 @@
+"""The asset library: background photos and foreground cutouts, scanned, checked and split.
+
+`build_library(recipe)` scans the recipe's asset folders (dofsynth.assets.scan) or takes the
+built-in assets, checks the pins (dofsynth.assets.pins), splits the assets into train and test
+(dofsynth.assets.splits) and returns an `AssetLibrary` whose loaders give linear-light float32
+pixels. With `verify = "header"` the loaders decode, re-check and raise `AssetError` naming
+the file, so a bad file never becomes a silent wrong sample; every load checks the file's sha256.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from dofsynth.assets import builtin as B
+from dofsynth.assets.decode import (KINDS, Asset, AssetError, alpha_bbox, alpha_of, check_size, colour_linear,
+                                    decode_asset, is_exr, unit_alpha)
+from dofsynth.assets.pins import check_pins
+from dofsynth.assets.scan import Scan, Scanner, read_sources_licences, scan_backgrounds, scan_foregrounds
+from dofsynth.assets.splits import assign_splits
+from dofsynth.color import srgb8_to_linear
+from dofsynth.files import sha256_bytes
+from dofsynth.recipe import BUILTIN, Recipe
+from dofsynth.rng import SPLITS
+
+CACHE_BYTES = 256 * 2**20  # decoded pixels kept per process (a 24 MP photo alone is 288 MB)
+
+
+def _nbytes(value) -> int:
+    return sum(a.nbytes for a in value) if isinstance(value, tuple) else value.nbytes
+
+
+class AssetLibrary:
+    """Sorted background and foreground assets, their split, and loaders (linear float32).
+
+    Decoded assets are kept in a per-process LRU cache of at most `cache_size` entries and
+    `cache_bytes` bytes of pixels (an asset larger than that is not kept): with thousands of
+    photos a hit is rare, and the bound keeps a worker's memory flat."""
+
+    def __init__(self, backgrounds: list[Asset], foregrounds: list[Asset], splits: dict[str, str],
+                 skipped: list[tuple[str, str]] | None = None, cache_size: int = 8,
+                 cache_bytes: int = CACHE_BYTES):
+        self.backgrounds = sorted(backgrounds, key=lambda a: a.id)
+        self.foregrounds = sorted(foregrounds, key=lambda a: a.id)
+        self._splits = dict(splits)
+        self.skipped = list(skipped or [])
+        self._by_id = {a.id: a for a in (*self.backgrounds, *self.foregrounds)}
+        self._cache: OrderedDict[str, object] = OrderedDict()
+        self._cache_size = cache_size
+        self._cache_bytes = cache_bytes
+
+    def __getstate__(self) -> dict:
+        """Pickled (to spawn workers, Ray tasks) without the decoded-pixel cache, but with the
+        built-in assets it lists as drawn so far (uint8, 26 MB for all of them), which the
+        receiving process then adopts instead of drawing them again."""
+        keys = [a.path.split(":", 1)[1] for a in (*self.backgrounds, *self.foregrounds) if a.path.startswith("builtin:")]
+        return {**self.__dict__, "_cache": OrderedDict(), "_builtin_pixels": B.generated(keys)}
+
+    def __setstate__(self, state: dict) -> None:
+        B.adopt(state.pop("_builtin_pixels", {}))
+        self.__dict__.update(state)
+
+    def __getitem__(self, asset_id: str) -> Asset:
+        try:
+            return self._by_id[asset_id]
+        except KeyError:
+            raise AssetError(f"{asset_id}: no such asset in this library") from None
+
+    def split_of(self, asset: Asset | str) -> str:
+        return self._splits[asset if isinstance(asset, str) else asset.id]
+
+    def assets_for(self, kind: str, split: str) -> list[Asset]:
+        if kind not in KINDS or split not in SPLITS:
+            raise ValueError(f"kind must be one of {KINDS} and split one of {SPLITS}, got {kind!r}, {split!r}")
+        pool = self.backgrounds if kind == "background" else self.foregrounds
+        return [a for a in pool if self._splits[a.id] == split]
+
+    def _cached(self, key: str, make):
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        value = make()
+        if _nbytes(value) > self._cache_bytes:
+            return value
+        self._cache[key] = value
+        while len(self._cache) > self._cache_size or sum(map(_nbytes, self._cache.values())) > self._cache_bytes:
+            self._cache.popitem(last=False)
+        return value
+
+    def _read(self, path: str, sha: str | None) -> bytes:
+        try:
+            data = Path(path).read_bytes()
+        except OSError as exc:
+            raise AssetError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+        if sha is not None and sha256_bytes(data) != sha:
+            raise AssetError(f"{path}: changed since the asset library was built (sha256 differs)")
+        return data
+
+    def load_background(self, asset: Asset) -> np.ndarray:
+        """Linear-light RGB (H, W, 3) float32, read-only."""
+        def make():
+            if asset.path.startswith("builtin:"):
+                img = srgb8_to_linear(B.background_pixels(asset.path.split("/", 1)[1]))
+            else:
+                raw = decode_asset(self._read(asset.path, asset.sha256), asset.path, codes=True)
+                check_size(asset.path, raw.shape[1], raw.shape[0])
+                img = colour_linear(raw, asset.path)
+            img = np.ascontiguousarray(img, dtype=np.float32)
+            img.setflags(write=False)
+            return img
+        return self._cached(asset.id, make)
+
+    def load_foreground(self, asset: Asset) -> tuple[np.ndarray, np.ndarray]:
+        """(linear-light RGB (H, W, 3) float32 straight colour, alpha (H, W) float32), read-only."""
+        def make():
+            if asset.path.startswith("builtin:"):
+                rgb8, a8 = B.foreground_pixels(asset.path.split("/", 1)[1])
+                rgb, alpha = srgb8_to_linear(rgb8), a8.astype(np.float32) / 255
+            else:
+                raw = decode_asset(self._read(asset.path, asset.sha256), asset.path, codes=True)
+                check_size(asset.path, raw.shape[1], raw.shape[0])
+                if asset.alpha_path:
+                    araw = decode_asset(self._read(asset.alpha_path, asset.alpha_sha256), asset.alpha_path, codes=True)
+                    if araw.shape[:2] != raw.shape[:2]:
+                        raise AssetError(f"{asset.alpha_path}: alpha is {araw.shape[1]}x{araw.shape[0]} but "
+                                         f"its foreground {asset.path} is {raw.shape[1]}x{raw.shape[0]}")
+                    alpha, name = alpha_of(araw, asset.alpha_path, False), asset.alpha_path
+                else:
+                    alpha, name = alpha_of(raw, asset.path, True), asset.path
+                if (raw.shape[1], raw.shape[0]) != asset.size:
+                    raise AssetError(f"{asset.path}: is {raw.shape[1]}x{raw.shape[0]}, scanned as {asset.size}")
+                alpha = unit_alpha(alpha)
+                alpha_bbox(alpha, name)
+                alpha = np.clip(alpha, 0.0, 1.0).astype(np.float32)
+                rgb = colour_linear(raw, asset.path)
+                if is_exr(asset.path) and not asset.alpha_path:
+                    # EXR colour is premultiplied by convention: store straight colour
+                    rgb = np.where(alpha[..., None] > 0, rgb / np.maximum(alpha[..., None], 1e-6), 0.0)
+            rgb = np.ascontiguousarray(rgb, dtype=np.float32)
+            alpha = np.ascontiguousarray(alpha, dtype=np.float32)
+            rgb.setflags(write=False)
+            alpha.setflags(write=False)
+            return rgb, alpha
+        return self._cached(asset.id, make)
+
+
+def build_library(recipe: Recipe) -> AssetLibrary:
+    """Scan (or generate) the recipe's assets, check them, pin them and split them."""
+    src = recipe.assets
+    scan = Scan()
+    lic: dict[str, str] = {}
+    for folder in (src.backgrounds, src.foregrounds):
+        if folder != BUILTIN:
+            if not Path(folder).is_dir():
+                raise FileNotFoundError(f"{recipe.path}: asset folder {folder} does not exist")
+            lic.update(read_sources_licences(Path(folder)))
+    sc = Scanner(src.on_bad_asset, src.verify, lic, scan)
+    bgs = list(B.builtin_assets("background")) if src.backgrounds == BUILTIN else scan_backgrounds(Path(src.backgrounds), sc)
+    fgs = list(B.builtin_assets("foreground")) if src.foregrounds == BUILTIN else scan_foregrounds(Path(src.foregrounds), sc)
+    if src.manifests:
+        pinned = check_pins(src.manifests, scan, [*bgs, *fgs])
+        relic = lambda a: a if a.licence != "unknown" or a.path not in pinned else replace(a, licence=pinned[a.path])
+        bgs, fgs = [relic(a) for a in bgs], [relic(a) for a in fgs]
+    need = {s: 1 if recipe.samples.count(s) > 0 else 0 for s in SPLITS}
+    splits = {**assign_splits(bgs, recipe.seed, src.test_share, need),
+              **assign_splits(fgs, recipe.seed, src.test_share, {s: 2 * n for s, n in need.items()})}
+    lib = AssetLibrary(bgs, fgs, splits, scan.skipped)
+    for split in SPLITS:
+        if need[split]:
+            nb, nf = len(lib.assets_for("background", split)), len(lib.assets_for("foreground", split))
+            if nb < 1 or nf < 2:
+                raise AssetError(f"{recipe.path}: the {split} split has {nb} usable backgrounds and {nf} "
+                                 f"foregrounds; a scene needs 1 background and 2 distinct foregrounds "
+                                 f"(backgrounds: {src.backgrounds}, foregrounds: {src.foregrounds})")
+    return lib

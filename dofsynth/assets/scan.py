@@ -1,0 +1,194 @@
+"""Scanning asset folders: every image file (recursively, sorted), checked and turned into an
+`Asset`, with its licence from a SOURCES.md table.
+
+Foregrounds come in two layouts: a folder of RGBA cutouts, or a folder holding `fg/` and
+`alpha/` paired by relative path without suffix (`fg/a/x.jpg` + `alpha/a/x.png`). A bad
+file is skipped with a warning naming it (`on_bad = "skip"`, listed in `Scan.skipped`) or
+stops the scan with `AssetError` naming it ("stop"). With `verify = "header"` only headers
+(and the small mattes) are decoded here; the loaders decode and check the rest.
+"""
+from __future__ import annotations
+
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dofsynth.assets.decode import Asset, AssetError, alpha_bbox, alpha_of, check_size, decode_asset, image_header
+from dofsynth.files import sha256_bytes
+from dofsynth.io import IMAGE_SUFFIXES
+
+
+def image_files(root: Path) -> list[Path]:
+    """Image files under `root`, recursively, sorted by relative path (hidden names skipped)."""
+    out = [p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+           and not any(part.startswith(".") for part in p.relative_to(root).parts)]
+    return sorted(out, key=lambda p: p.relative_to(root).as_posix())
+
+
+def rel_id(root: Path, p: Path) -> str:
+    return p.relative_to(root).with_suffix("").as_posix()
+
+
+def is_paired_layout(root: Path) -> bool:
+    return (root / "fg").is_dir() and (root / "alpha").is_dir()
+
+
+def read_sources_licences(folder: Path) -> dict[str, str]:
+    """Licences from a SOURCES.md markdown table in `folder` or its parent: {absolute path: licence}.
+
+    The table needs a column `file` (the path relative to SOURCES.md's folder, backticks allowed)
+    and a column `licence` (or `license`)."""
+    out: dict[str, str] = {}
+    for where in (folder, folder.parent):
+        src = where / "SOURCES.md"
+        if not src.is_file():
+            continue
+        header: list[str] | None = None
+        for line in src.read_text(encoding="utf-8", errors="replace").splitlines():
+            if not line.strip().startswith("|"):
+                header = None
+                continue
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if header is None:
+                header = [c.lower() for c in cells]
+                continue
+            if all(re.fullmatch(r":?-+:?", c) for c in cells if c):
+                continue
+            col = {n: i for i, n in enumerate(header)}
+            lic = col.get("licence", col.get("license"))
+            if "file" not in col or lic is None or len(cells) <= max(col["file"], lic):
+                continue
+            rel = cells[col["file"]].strip("`")
+            out.setdefault(str((where / rel).resolve()), cells[lic])
+    return out
+
+
+@dataclass
+class Scan:
+    """What a scan found: the assets, the skipped files (path, reason) and the sha256 of every
+    file it read (absolute path -> hex)."""
+
+    assets: list[Asset] = field(default_factory=list)
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+    hashes: dict[str, str] = field(default_factory=dict)
+
+
+class Scanner:
+    def __init__(self, on_bad: str, verify: str, licences: dict[str, str], out: Scan):
+        self.on_bad, self.decode, self.licences, self.out = on_bad, verify == "decode", licences, out
+
+    def bad(self, path: str, reason: str) -> None:
+        text = reason if reason.startswith(path) else f"{path}: {reason}"
+        if self.on_bad == "stop":
+            raise AssetError(text)
+        self.out.skipped.append((path, reason))
+        print(f"dofsynth: warning: skipping asset {text}", file=sys.stderr)
+
+    def read(self, p: Path) -> bytes:
+        try:
+            data = p.read_bytes()
+        except OSError as exc:
+            raise AssetError(f"{p}: cannot read ({exc.strerror or exc})") from exc
+        self.out.hashes[str(p)] = sha256_bytes(data)
+        return data
+
+    def probe(self, p: Path, data: bytes, check: bool = True,
+              decode: bool | None = None) -> tuple[tuple[int, int], np.ndarray | None, int]:
+        """(w, h), decoded image or None (header mode), channels."""
+        if self.decode if decode is None else decode:
+            img = decode_asset(data, str(p))
+            h, w, c = img.shape
+        else:
+            img = None
+            w, h, c = image_header(str(p))
+        if check:
+            check_size(str(p), w, h)
+        return (w, h), img, c
+
+    def _add(self, asset_id: str, kind: str, p: Path, size, **extra) -> None:
+        self.out.assets.append(Asset(id=asset_id, kind=kind, path=str(p), sha256=self.out.hashes[str(p)], size=size,
+                                     licence=self.licences.get(str(p), "unknown"), **extra))
+
+    def background(self, root: Path, p: Path) -> None:
+        try:
+            size, _, _ = self.probe(p, self.read(p))
+        except AssetError as exc:
+            return self.bad(str(p), str(exc))
+        self._add("bg/" + rel_id(root, p), "background", p, size)
+
+    def cutout(self, root: Path, p: Path) -> None:
+        try:
+            size, img, c = self.probe(p, self.read(p))
+            bbox = None
+            if img is not None:
+                bbox = alpha_bbox(alpha_of(img, str(p), True), str(p))
+            elif c not in (2, 4):
+                raise AssetError(f"{p}: foreground without alpha ({c} channels; need RGBA or grey+alpha)")
+        except AssetError as exc:
+            return self.bad(str(p), str(exc))
+        self._add("fg/" + rel_id(root, p), "foreground", p, size, bbox=bbox)
+
+    def pair(self, root: Path, p: Path, a: Path) -> None:
+        try:
+            size, _, _ = self.probe(p, self.read(p))
+            # mattes are small single-channel files: always decoded, so the bbox and an empty
+            # matte are known at scan time even with verify = "header"
+            asize, aimg, _ = self.probe(a, self.read(a), check=False, decode=True)
+            if asize != size:
+                raise AssetError(f"{a}: alpha is {asize[0]}x{asize[1]} but its foreground {p} is "
+                                 f"{size[0]}x{size[1]}")
+            bbox = alpha_bbox(alpha_of(aimg, str(a), False), str(a))
+        except AssetError as exc:
+            return self.bad(str(p), str(exc))
+        self._add("fg/" + rel_id(root / "fg", p), "foreground", p, size, alpha_path=str(a),
+                  alpha_sha256=self.out.hashes[str(a)], bbox=bbox)
+
+    def unique(self, assets: list[Asset]) -> list[Asset]:
+        """`assets` without the later ones of a repeated id (files that differ only in suffix)."""
+        seen: dict[str, Asset] = {}
+        out = []
+        for a in assets:
+            if a.id in seen:
+                self.bad(a.path, f"same id {a.id!r} as {seen[a.id].path} (two files differ only in suffix)")
+                continue
+            seen[a.id] = a
+            out.append(a)
+        return out
+
+
+def _progress(files: list[Path], what: str):
+    from tqdm import tqdm
+
+    return tqdm(files, desc=f"scan {what}", unit="file", disable=len(files) < 500, file=sys.stderr)
+
+
+def scan_backgrounds(root: Path, sc: Scanner) -> list[Asset]:
+    n = len(sc.out.assets)
+    for p in _progress(image_files(root), "backgrounds"):
+        sc.background(root, p)
+    return sc.unique(sc.out.assets[n:])
+
+
+def scan_foregrounds(root: Path, sc: Scanner) -> list[Asset]:
+    n = len(sc.out.assets)
+    if is_paired_layout(root):
+        alphas: dict[str, list[Path]] = {}
+        for a in image_files(root / "alpha"):
+            alphas.setdefault(rel_id(root / "alpha", a), []).append(a)
+        for p in _progress(image_files(root / "fg"), "foregrounds"):
+            found = alphas.pop(rel_id(root / "fg", p), [])
+            if len(found) != 1:
+                why = "no matte" if not found else "several mattes: " + ", ".join(map(str, found))
+                sc.bad(str(p), f"foreground without alpha ({why} under {root / 'alpha'} for this stem)")
+                continue
+            sc.pair(root, p, found[0])
+        for stem, left in sorted(alphas.items()):
+            for a in left:
+                sc.bad(str(a), f"alpha without a foreground (no {root / 'fg' / stem}.* )")
+    else:
+        for p in _progress(image_files(root), "foregrounds"):
+            sc.cutout(root, p)
+    return sc.unique(sc.out.assets[n:])

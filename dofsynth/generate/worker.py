@@ -1,0 +1,99 @@
+"""What a rendering process does: keep the asset library of its recipe, render shards with the
+pure `generate_shard`, and set itself up for that one job (`setup_process`).
+
+`generate_shard(recipe, out, split, shard_index)`'s output depends on nothing but the recipe
+(and the asset files it names), so sample i is the same bytes whatever the worker count, the
+machine, the executor, the order shards finish in, or a resume.
+"""
+from __future__ import annotations
+
+import os
+import resource
+import sys
+from pathlib import Path
+
+from dofsynth.assets import build_library
+from dofsynth.generate.plan import shard_task
+from dofsynth.rng import sample_key
+from dofsynth.sample import render_sample
+from dofsynth.scene import sample_scene
+from dofsynth.shards import ShardInfo, ShardWriter
+
+_LIBRARY: dict = {"key": None, "library": None}
+
+
+def library_for(recipe, library=None):
+    """The asset library of `recipe`, built once per process and reused for every shard.
+    `library`: one already built for this recipe, used unless this process has one (workers
+    get their parent's: the asset folders are scanned and hashed once, not once per worker)."""
+    key = (recipe.sha256, recipe.base_dir)  # the same text elsewhere names other files
+    if _LIBRARY["key"] != key or _LIBRARY["library"] is None:
+        _LIBRARY["library"], _LIBRARY["key"] = library if library is not None else build_library(recipe), key
+    return _LIBRARY["library"]
+
+
+def render_one(recipe, library, split: str, index: int) -> tuple[str, dict[str, bytes]]:
+    """(key, members) of sample `index` of `split`: the scene sampled from its own seed."""
+    return sample_key(split, index), render_sample(sample_scene(recipe, library, split, index), library)
+
+
+def generate_shard(recipe, out, split: str, shard_index: int, *, limit: int | None = None,
+                   library=None, on_sample=None) -> ShardInfo:
+    """Render shard `shard_index` of `split` to `OUT/<split>/<split>-NNNNNN.tar` (temp name,
+    then rename) and return its ShardInfo. The bytes depend only on the recipe, split, shard
+    index and `limit` (which can shorten the last shard). `library` defaults to this
+    process's cached one; `on_sample(1)` is called after each sample is written."""
+    task = shard_task(recipe, split, shard_index, limit)
+    library = library if library is not None else library_for(recipe)
+    final = Path(out) / split / task.name
+    with ShardWriter(final) as writer:
+        for i in range(task.first_index, task.first_index + task.samples):
+            writer.write(*render_one(recipe, library, split, i))
+            if on_sample is not None:
+                on_sample(1)
+    return ShardInfo(split=split, index=task.index, name=task.name, first_index=task.first_index,
+                     samples=writer.samples, sha256=writer.sha256, bytes=writer.bytes)
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory in MiB (ru_maxrss, KiB on Linux)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+# glibc malloc settings of a rendering process (mallopt parameter numbers from malloc.h). By
+# default glibc gives every block above a dynamic threshold (<= 32 MiB) its own mmap and hands
+# freed heap tops above 2x that threshold back to the kernel, so each FFT tile, strip and frame
+# of a sample comes back as fresh pages that are zeroed and faulted in again on first touch
+# (0.1-0.45 s per 192 MiB at 4096 px on a VM). A worker does one thing, the same sample shape
+# again and again: keeping blocks up to WORKER_MMAP_THRESHOLD (an RGB float32 frame at 4096
+# px is 192 MiB) on the heap and up to WORKER_TRIM_THRESHOLD of free heap reuses those pages
+# (docs/generate.md, "Speed"). Cutout frames, mostly zeros, are `compose.lazy_zeros` maps of
+# their own, so calloc does not clear them in full on the heap.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+WORKER_MMAP_THRESHOLD = 256 << 20
+WORKER_TRIM_THRESHOLD = 1024 << 20
+MALLOC_ENV = "DOFSYNTH_WORKER_MALLOC"  # "default": leave glibc's settings; "MMAP_MIB,TRIM_MIB": these
+
+
+def setup_process() -> None:
+    """Set up this process for rendering shards and nothing else (a pool worker, a Ray task, or
+    `generate --workers 1` itself): one OpenCV thread (one core per worker, no
+    oversubscription) and, on Linux with glibc, the malloc settings above unless
+    DOFSYNTH_WORKER_MALLOC=default. The bytes made do not depend on any of it."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    setting = os.environ.get(MALLOC_ENV, "")
+    if setting == "default" or not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    mmap_t, trim_t = WORKER_MMAP_THRESHOLD, WORKER_TRIM_THRESHOLD
+    if setting:
+        mmap_t, trim_t = (int(v) << 20 for v in setting.split(","))
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:  # not glibc (musl, ...): nothing to tune
+        return
+    libc.mallopt(_M_MMAP_THRESHOLD, mmap_t)
+    libc.mallopt(_M_TRIM_THRESHOLD, trim_t)

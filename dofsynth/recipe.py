@@ -1,0 +1,167 @@
+"""Recipes: the TOML file that fixes everything a data set is made from.
+
+`load_recipe(path)` reads and validates a recipe into frozen dataclasses that mirror its
+tables (`recipe.scene.background.flat_share` is `[scene.background] flat_share`); every key's
+default and range lives on its field below, read by the one typed reader (dofsynth.config),
+so a problem names the file, the dotted key and what was expected. Relative asset paths are
+resolved against the recipe's folder; the value "builtin" selects the built-in assets.
+`Recipe.sha256` hashes the file bytes, so a data set records exactly what made it;
+`recipe_from_text` rebuilds a recipe from that text. The key table is in docs/recipes.md.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+from dofsynth.config import ConfigError, Range, error, key, parse_toml, read, read_text, table
+from dofsynth.files import sha256_bytes
+from dofsynth.optics.aperture import APERTURES
+
+BUILTIN = "builtin"
+RecipeError = ConfigError  # a recipe that cannot be used (the name recipes' callers know)
+dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
+
+
+@dataclass_kw
+class Samples:
+    train: int = key(lo=0)
+    test: int = key(lo=0)
+
+    def count(self, split: str) -> int:
+        return {"train": self.train, "test": self.test}[split]
+
+
+@dataclass_kw
+class AssetSources:
+    backgrounds: str = key()            # "builtin" or a folder (absolute once loaded)
+    foregrounds: str = key()            # "builtin" or a folder: RGBA cutouts, or fg/ + alpha/
+    manifests: tuple[str, ...] = key((), toml="manifest")  # pinning manifests (absolute once loaded)
+    on_bad_asset: str = key("skip", choices=("skip", "stop"))
+    test_share: float = key(0.1, lo=0.0, hi=0.9)    # fraction of assets (per kind) in the test split
+    verify: str = key("decode", choices=("decode", "header"))  # decode every file at scan, or lazily
+
+
+@dataclass_kw
+class BackgroundRules:
+    flat_share: float = key(0.3, lo=0.0, hi=1.0)     # probability of a flat background (disparity 0)
+    b0: Range = key((0.1, 0.4), lo=0.0, hi=1.0)      # ramp: disparity at the near edge (left / bottom)
+    b1: Range = key((0.0, 0.1), lo=0.0, hi=1.0)      # ramp: disparity at the far edge, b1 < b0
+    vertical_share: float = key(0.5, lo=0.0, hi=1.0)  # among ramps, probability of "vertical"
+    crop: Range = key((0.6, 1.0), lo=0.05, hi=1.0)   # crop side / largest crop of the frame aspect
+
+
+@dataclass_kw
+class ForegroundRules:
+    f0: Range = key((0.75, 1.0), lo=0.0, hi=1.0)     # front plane disparity
+    f1: Range = key((0.45, 0.75), lo=0.0, hi=1.0)    # middle plane disparity
+    min_gap: float = key(0.05, lo=0.0, hi=0.5, lo_open=True)  # f0 >= f1 + gap, f1 >= b_max + gap
+    scale: Range = key((0.35, 0.8), lo=0.01, hi=1.0)  # object long side / frame short side
+    min_in_frame: float = key(0.6, lo=0.05, hi=1.0)  # least share of each object's bbox in the frame
+    flip_share: float = key(0.5, lo=0.0, hi=1.0)     # probability of a horizontal flip (each object, background)
+
+
+@dataclass_kw
+class SceneRules:
+    background: BackgroundRules = table(BackgroundRules)
+    foreground: ForegroundRules = table(ForegroundRules)
+
+
+@dataclass_kw
+class FocusRules:
+    targets_per_scene: int = key(1, lo=1, hi=64)
+    plane_share: float = key(0.5, lo=0.0, hi=1.0)    # probability a target focuses exactly on a plane
+    max_coc: Range = key(lo=0.0, hi=512.0)           # max circle-of-confusion radius, px at the output size
+
+
+@dataclass_kw
+class ApertureRules:
+    kind: str = key("disk", choices=tuple(APERTURES))  # the aperture registry's kinds
+    blades: int = key(6, lo=3, hi=16)                # polygon only
+    rotation: Range = key((0.0, 0.0), lo=-360.0, hi=360.0)  # polygon only, degrees, drawn per scene
+
+
+@dataclass_kw
+class HighlightRules:
+    enabled: bool = key(True)
+    threshold: float = key(0.9, lo=0.0, hi=0.999)
+    gain: float = key(4.0, lo=0.0, hi=1000.0)
+    power: float = key(2.0, lo=0.0, hi=16.0, lo_open=True)
+
+
+@dataclass_kw
+class RenderRules:
+    linear_light: bool = key(True)
+    aperture: ApertureRules = table(ApertureRules)
+    highlight: HighlightRules = table(HighlightRules)
+
+
+@dataclass_kw
+class Recipe:
+    name: str = key()
+    seed: int = key(lo=0, hi=2**63 - 1)
+    size: int = key(lo=16, hi=16384)                  # long side of the output, px
+    aspect: float = key(1.0, lo=0.25, hi=4.0)         # width / height
+    shard_size: int = key(256, lo=1)
+    samples: Samples = table(Samples)
+    assets: AssetSources = table(AssetSources)
+    scene: SceneRules = table(SceneRules)
+    focus: FocusRules = table(FocusRules)
+    render: RenderRules = table(RenderRules)
+    path: str = dataclasses.field(default="", compare=False)      # the file, as given
+    base_dir: str = dataclasses.field(default="", compare=False)  # relative asset paths resolve here
+    text: str = dataclasses.field(default="", repr=False)
+    sha256: str = ""
+
+    @property
+    def frame(self) -> tuple[int, int]:
+        """(H, W) of every output image: the long side is `size`, W / H is `aspect`."""
+        return frame_size(self.size, self.aspect)
+
+
+def frame_size(size: int, aspect: float) -> tuple[int, int]:
+    if aspect >= 1.0:
+        return max(1, round(size / aspect)), size
+    return size, max(1, round(size * aspect))
+
+
+def _check(r: Recipe, file: str) -> None:
+    """The rules between keys: at least one sample, a ramp that falls, planes in front."""
+    if r.samples.train + r.samples.test == 0:
+        raise ConfigError(f"{file}: samples: expected at least one sample in train or test, got 0")
+    bg, fg = r.scene.background, r.scene.foreground
+    if bg.flat_share < 1.0 and not bg.b1[0] < bg.b0[0]:
+        raise error(file, "scene.background.b1", f"a range whose low end is below scene.background.b0's low "
+                    f"end {bg.b0[0]} (a ramp runs from b0 down to b1 < b0)", list(bg.b1))
+    gap = fg.min_gap
+    b_max = bg.b0[1] if bg.flat_share < 1.0 else 0.0
+    if fg.f1[1] < b_max + gap:
+        raise error(file, "scene.foreground.f1", f"a high end >= {b_max + gap:g} (scene.background.b0 high end "
+                    f"{b_max:g} + min_gap {gap:g}) so the middle plane can be in front", list(fg.f1))
+    if fg.f0[1] < fg.f1[1] + gap:
+        raise error(file, "scene.foreground.f0", f"a high end >= {fg.f1[1] + gap:g} (scene.foreground.f1 high "
+                    "end + min_gap) so the front plane can be in front", list(fg.f0))
+
+
+def _resolve(folder: str, base: Path) -> str:
+    return BUILTIN if folder == BUILTIN else str((base / os.path.expanduser(folder)).resolve())
+
+
+def recipe_from_text(text: str, path_for_messages: str | os.PathLike, base_dir: str | os.PathLike) -> Recipe:
+    """Parse and validate recipe TOML text. `path_for_messages` names the file in errors and is
+    kept as `Recipe.path`; relative asset paths are resolved against `base_dir`."""
+    file = str(path_for_messages)
+    base = Path(base_dir).resolve()
+    r = read(Recipe, parse_toml(text, file), file)
+    _check(r, file)
+    a = r.assets
+    assets = dataclasses.replace(a, backgrounds=_resolve(a.backgrounds, base), foregrounds=_resolve(a.foregrounds, base),
+                                 manifests=tuple(str((base / m).resolve()) for m in a.manifests))
+    return dataclasses.replace(r, assets=assets, path=file, base_dir=str(base), text=text,
+                               sha256=sha256_bytes(text.encode("utf-8")))
+
+
+def load_recipe(path: str | os.PathLike) -> Recipe:
+    """Read and validate a recipe file (see docs/recipes.md). `Recipe.sha256` is of its bytes."""
+    p = Path(path)
+    return recipe_from_text(read_text(p, "recipe file"), str(p), p.resolve().parent)

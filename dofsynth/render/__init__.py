@@ -1,0 +1,85 @@
+"""Rendering layered scenes with shallow depth of field: `render_planes(planes, focus, max_coc,
+aperture, method=...)`.
+
+planes (dofsynth.render.planes.Plane) are listed back to front; each method of `METHODS`
+turns validated planes into linear RGB:
+- "layered" (dofsynth.render.layered): each plane blurred on its own with its aperture kernel
+  (premultiplied), composited back to front; fast, what `generate` uses;
+- "exact" (dofsynth.render.exact): the aperture sampled, every plane warped and composited per
+  aperture point, averaged; handles partial occlusion at depth edges, slow.
+A method is one entry: its function (validated planes, focus, max_coc, aperture, RenderOptions)
+-> planar (3, H, W) float32, and whether it reads only inside the planes' boxes.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from dofsynth.optics.aperture import Aperture, Disk
+from dofsynth.render.exact import render_exact
+from dofsynth.render.layered import LEVEL_RATIO, render_layered
+from dofsynth.render.planes import Plane, validate_planes
+
+__all__ = ["METHODS", "LEVEL_RATIO", "Plane", "RenderOptions", "render_planes"]
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """level_step: largest CoC gap (px) between the levels of a varying-disparity plane;
+    level_ratio: their relative spacing (layered). samples: aperture points, None = enough for
+    <= 0.5 px steps (exact)."""
+
+    level_step: float = 0.5
+    level_ratio: float = LEVEL_RATIO
+    samples: int | None = None
+
+    def __post_init__(self):
+        if not (math.isfinite(self.level_step) and self.level_step > 0):
+            raise ValueError(f"level_step must be a positive number of pixels, got {self.level_step}")
+        if not (math.isfinite(self.level_ratio) and 0.0 <= self.level_ratio < 1.0):
+            raise ValueError(f"level_ratio must be in [0, 1), got {self.level_ratio}")
+        s = self.samples
+        if s is not None and (isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 1):
+            raise ValueError(f"samples must be a positive integer or None, got {s}")
+
+
+@dataclass(frozen=True)
+class Method:
+    render: Callable   # (planes, focus, max_coc, aperture, RenderOptions) -> (3, H, W) float32
+    uses_boxes: bool   # reads colour and alpha only inside each plane's box
+
+
+METHODS: dict[str, Method] = {
+    "layered": Method(render_layered, uses_boxes=True),
+    "exact": Method(render_exact, uses_boxes=False),
+}
+
+
+def render_planes(planes, focus: float, max_coc: float, aperture: Aperture = Disk(), *, method: str = "layered",
+                  level_step: float = 0.5, level_ratio: float = LEVEL_RATIO, samples: int | None = None,
+                  planar: bool = False) -> np.ndarray:
+    """Render a layered scene with shallow depth of field; linear RGB (H, W, 3) float32.
+
+    planes: Plane, back to front (disparity in [0, 1], 1 = nearest). focus: the in-focus
+    disparity. max_coc: CoC radius in pixels at |disparity - focus| = 1. aperture: a kind of
+    dofsynth.optics.aperture. method: a key of METHODS; level_step, level_ratio and samples
+    are its RenderOptions. The result is the premultiplied composite over black (opaque if the
+    backmost plane is). planar=True returns the same values as (3, H, W) (the renderer's own
+    layout: no interleaving copy, which at 4096 px is a fresh 192 MiB frame and ~0.17 s).
+    """
+    planes = list(planes)
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {tuple(METHODS)}, got {method!r}")
+    m = METHODS[method]
+    validate_planes(planes, focus, max_coc, use_boxes=m.uses_boxes)
+    if not isinstance(aperture, Aperture):
+        raise ValueError(f"aperture must be an aperture kind (Disk(), Polygon(...)), got {aperture!r}")
+    options = RenderOptions(level_step=level_step, level_ratio=level_ratio, samples=samples)
+    acc = m.render(planes, focus, max_coc, aperture, options)
+    if planar:
+        return acc
+    return cv2.merge([acc[0], acc[1], acc[2]])  # (H, W, 3) float32

@@ -1,0 +1,167 @@
+"""Exact linear convolution of float32 channels with an aperture kernel, shared by every
+blurred plane: `Convolver(signed_radius, aperture, h, w).add_into(tile, dst, oy, ox)`.
+
+Small kernels (support radius <= SMALL_KERNEL) go through cv2.filter2D; larger ones through
+float32 FFTs (scipy.fft, next_fast_len sizes), one channel and one tile at a time, taken
+axis by axis: the real transform along rows runs only over the input rows that hold data
+(once, even where overlap-save bands overlap) and its inverse only over the rows kept. Large
+inputs run as overlap-save over full-width bands of rows (docs/rendering.md). The result
+equals a float64 direct convolution to float32 rounding, tiled or not.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import scipy.fft as sfft
+
+from dofsynth.optics.aperture import Aperture
+from dofsynth.optics.kernel import kernel, support_radius
+
+# Kernels with support radius up to this many pixels (11x11) go through cv2.filter2D (direct,
+# 2-6x faster there, measured), larger ones via FFT (cv2 switches to its own slower DFT beyond).
+SMALL_KERNEL = 5
+
+
+def _kernel_spectrum(k: np.ndarray, n0: int, n1: int) -> np.ndarray:
+    """rfft2 over an (n0, n1) grid of the kernel placed at the grid's top-left corner: rows
+    first (only 2S+1 of them are non-zero), then columns (complex64)."""
+    part = sfft.rfft(k, n=n1, axis=1)
+    return sfft.fft(part, n=n0, axis=0)
+
+
+@dataclass(frozen=True)
+class Tiling:
+    """How large FFT convolutions are cut: once the padded height exceeds `above`, overlap-save
+    bands with an FFT height of next_fast_len(max(rows, s_factor * S)), each as wide as the
+    input up to `wide` padded columns (wider inputs are also cut into column tiles of about
+    wide / 2). The FFT's cost per pixel grows with its size (cache misses), least so along the
+    contiguous rows: short full-width bands beat square tiles (docs/rendering.md). The result
+    does not depend on the tiling beyond float32 rounding."""
+
+    above: int = 1536
+    rows: int = 768
+    wide: int = 4700
+    s_factor: int = 4
+
+
+TILING = Tiling()
+
+
+class Convolver:
+    """Linear convolution of (h, w) float32 channels with one kernel, sharing its spectrum.
+
+    The full convolution is (h + 2S, w + 2S): input pixel (i, j) spreads over output rows
+    i .. i + 2S and columns j .. j + 2S (output (i + S, j + S) is its centre), so the input needs
+    no zero margin. `add_into` adds the part of it that lands in a destination. Small kernels
+    use cv2.filter2D, large ones float32 FFTs (next_fast_len sizes, one channel and one tile at a
+    time) taken axis by axis: the real transform along rows runs only over the input rows that
+    hold data (once, even where bands overlap) and its inverse only over the rows kept."""
+
+    def __init__(self, signed_radius: float, aperture: Aperture, h: int, w: int, tiling: Tiling = TILING):
+        self.s = s = support_radius(signed_radius)
+        self.k = kernel(aperture, signed_radius)
+        self.h, self.w = h, w
+        self.direct = s <= SMALL_KERNEL
+        self.ty, self.tx = h, w
+        if self.direct:
+            self.flipped = np.ascontiguousarray(self.k[::-1, ::-1])
+        else:
+            if w + 2 * s > tiling.wide:
+                self.tx = sfft.next_fast_len(max(tiling.wide // 2, tiling.s_factor * s), real=True) - 2 * s
+            if h + 2 * s > tiling.above:
+                self.ty = sfft.next_fast_len(max(tiling.rows, tiling.s_factor * s), real=True) - 2 * s
+            self.n0 = sfft.next_fast_len(self.ty + 2 * s, real=True)
+            self.n1 = sfft.next_fast_len(self.tx + 2 * s, real=True)
+            self.spec = _kernel_spectrum(self.k, self.n0, self.n1)
+
+    def _direct(self, tile, i0: int, i1: int, j0: int, j1: int) -> np.ndarray:
+        """Full convolution of input[i0:i1, j0:j1] by cv2.filter2D (small kernels); the block
+        is written straight into the middle of its zero-padded buffer."""
+        s2 = 2 * self.s
+        pad = np.zeros((i1 - i0 + 2 * s2, j1 - j0 + 2 * s2), np.float32)
+        tile(i0, i1, j0, j1, pad[s2 : s2 + i1 - i0, s2 : s2 + j1 - j0])
+        if not s2:
+            return pad
+        out = cv2.filter2D(pad, -1, self.flipped, anchor=(self.s, self.s), borderType=cv2.BORDER_CONSTANT)
+        return out[self.s : self.s + i1 - i0 + s2, self.s : self.s + j1 - j0 + s2]
+
+    def add_into(self, tile, dst: np.ndarray, oy: int, ox: int) -> None:
+        """dst[oy + p, ox + q] += full[p, q] where it lies inside dst; the input comes from
+        `tile(y0, y1, x0, x1, out)`, which writes input[y0:y1, x0:x1] into `out` (a float32
+        view of that shape: the FFT's padded buffer, so the input is copied once). Overlap-save:
+        only the part of `full` inside dst is computed, in output tiles of (ty, tx), each from
+        the input reaching it."""
+        H, W = dst.shape
+        s2 = 2 * self.s
+        rows = list(_spans(max(-oy, 0), min(H - oy, self.h + s2), self.h, s2, self.ty))
+        for q0, q1, j0, j1 in _spans(max(-ox, 0), min(W - ox, self.w + s2), self.w, s2, self.tx):
+            if not self.direct:
+                self._add_bands(tile, dst, oy, ox + q0, rows, q1 - q0, q0 - j0, j0, j1)
+                continue
+            for p0, p1, i0, i1 in rows:
+                block = self._direct(tile, i0, i1, j0, j1)
+                dst[oy + p0 : oy + p1, ox + q0 : ox + q1] += block[p0 - i0 : p1 - i0, q0 - j0 : q1 - j0]
+
+    def _add_bands(self, tile, dst, oy, ox, rows, width, skip, j0, j1) -> None:
+        """One column tile by FFT: for each band (p0, p1, i0, i1) of `rows`, output rows p0 .. p1
+        (columns skip .. skip + width of the block) from input rows i0 .. i1, columns j0 .. j1.
+        Rows first: each input row's real transform is taken once (bands share 2S rows), and
+        the inverse one only for the rows kept."""
+        n0, n1, s2 = self.n0, self.n1, 2 * self.s
+        real = np.empty((n0, n1), np.float32)  # a band's new input rows, zero-padded to n1
+        half = np.empty((n0, n1 // 2 + 1), np.complex64)  # the band's row spectra, zero-padded to n0
+        shared, shared0 = half[:0], 0  # row spectra the next band reuses, from input row shared0
+        for p0, p1, i0, i1 in rows:
+            lo = max(i0, shared0 + shared.shape[0])  # rows before lo were transformed already
+            if lo > i0:
+                half[: lo - i0] = shared[i0 - shared0 :]
+            if i1 > lo:
+                tile(lo, i1, j0, j1, real[: i1 - lo, : j1 - j0])
+                real[: i1 - lo, j1 - j0 :] = 0.0
+                half[lo - i0 : i1 - i0] = sfft.rfft(real[: i1 - lo], axis=1)
+            half[i1 - i0 :] = 0.0
+            shared0 = max(i0, p1 - s2)  # the next band's input starts at its p0 - 2S = p1 - 2S
+            shared = half[shared0 - i0 : i1 - i0].copy()
+            spec = sfft.fft(half, axis=0, overwrite_x=True)
+            spec *= self.spec
+            spec = sfft.ifft(spec, axis=0, overwrite_x=True)
+            out = sfft.irfft(spec[p0 - i0 : p1 - i0], n=n1, axis=1)
+            dst[oy + p0 : oy + p1, ox : ox + width] += out[:, skip : skip + width]
+
+
+def copy_tile(a: np.ndarray):
+    """The `_Conv.add_into` tile callback that reads the input from array `a` (any strides)."""
+    return lambda y0, y1, x0, x1, out: np.copyto(out, a[y0:y1, x0:x1])
+
+
+def convolve(x: np.ndarray, signed_radius: float, aperture: Aperture) -> np.ndarray:
+    """Convolve a (C, h, w) float32 stack with the kernel of `signed_radius` pixels.
+
+    The result has x's shape and positions. Values within S = support_radius of the border are
+    correct only if x holds zeros (or the wanted extension) in that margin: the caller pads.
+    """
+    s = support_radius(signed_radius)
+    c, h, w = x.shape
+    conv = Convolver(signed_radius, aperture, h, w)
+    out = np.zeros((c, h, w), np.float32)
+    for i in range(c):
+        conv.add_into(copy_tile(x[i]), out[i], -s, -s)
+    return out
+
+
+def _spans(lo: int, hi: int, n: int, s2: int, step: int):
+    """Overlap-save along one axis: output ranges [p0, p1) of a full convolution (length
+    n + s2, s2 = 2S) covering [lo, hi) in steps of `step`, each with the input range [i0, i1)
+    that reaches it (input i lands on outputs i .. i + s2). step >= n: one span, all input."""
+    if hi <= lo:
+        return
+    if step >= n:
+        yield lo, hi, 0, n
+        return
+    for p0 in range(lo, hi, step):
+        p1 = min(p0 + step, hi)
+        i0, i1 = max(p0 - s2, 0), min(p1, n)
+        if i1 > i0:
+            yield p0, p1, i0, i1

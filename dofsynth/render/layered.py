@@ -1,0 +1,229 @@
+"""The layered depth-of-field renderer: blur each plane on its own, composite back to front.
+
+`render_layered(planes, focus, max_coc, aperture, options)` returns linear RGB (3, H, W)
+float32. Each plane's premultiplied (colour * alpha, alpha) is blurred with the aperture kernel
+of its signed CoC radius (dofsynth.optics.coc_radius) in pixels, then the blurred
+planes are composited with "over". The backmost plane extends past the frame by edge
+replication; the others are zero outside it.
+
+Constant-disparity planes are convolved exactly (float32 FFT, overlap-save tiles for large
+ones; cv2 for tiny kernels), cropped to the plane's alpha bounding box plus the kernel radius,
+one channel at a time. Planes whose disparity varies use a normalized scatter: the signed CoC
+is split into levels `c_k` anchored at the smallest CoC and at most
+`max(level_step, level_ratio * |c_k|)` pixels apart; each pixel is shared between its two
+neighbouring levels with linear weights `w_k`, and `out = sum_k K_k * (w_k P) / sum_k K_k * w_k`
+(the denominator is the same scatter applied to ones; a 1-D convolution when the map is a
+broadcast row or column). A constant map is one level, i.e. the exact constant result. The
+only approximation is the linear interpolation of kernels between levels (docs/rendering.md).
+No torch here: this module is on the data-generation path.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from dofsynth.optics.coc import coc_radius
+from dofsynth.optics.kernel import support_radius
+from dofsynth.render.fft import Convolver, copy_tile
+from dofsynth.render.frame import add_clipped, compact, grab, is_one
+from dofsynth.render.planes import alpha_box
+
+# Default relative level spacing of varying-disparity planes (RenderOptions.level_ratio).
+LEVEL_RATIO = 1.0 / 32.0
+
+
+def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
+    """Blur a constant-CoC plane over its alpha box and composite it "over" `acc` (3, H, W),
+    one channel at a time: the blurred alpha first, then each premultiplied colour."""
+    _, H, W = acc.shape
+    y0, y1, x0, x1 = box
+    s = support_radius(c)
+    if backmost:  # the frame, edge-replicated S px beyond it: its blur covers the frame
+        gy0, gy1, gx0, gx1 = -s, H + s, -s, W + s
+    else:
+        gy0, gy1, gx0, gx1 = y0, y1, x0, x1
+    h, w = gy1 - gy0, gx1 - gx0
+    conv = Convolver(c, aperture, h, w)
+    if backmost:  # acc is still black: add the blur straight into it, tile by tile
+        one = is_one(alpha)
+        for ch in range(3):
+            def tile(y0, y1, x0, x1, out, ch=ch):
+                grab(rgb[:, :, ch], gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True, out)
+                if not one:
+                    out *= grab(alpha, gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True)
+            conv.add_into(tile, acc[ch], gy0 - s, gx0 - s)
+        return
+    # a cutout: acc *= 1 - blur(alpha), then acc += blur(colour * alpha), over the blur's
+    # footprint clipped to the frame (the blurs are added straight into acc, tile by tile)
+    oy0, ox0 = max(gy0 - s, 0), max(gx0 - s, 0)
+    oy1, ox1 = min(gy1 + s, H), min(gx1 + s, W)
+    a_src = np.ascontiguousarray(alpha[gy0:gy1, gx0:gx1], dtype=np.float32)
+    keep = np.zeros((oy1 - oy0, ox1 - ox0), np.float32)
+    conv.add_into(copy_tile(a_src), keep, gy0 - s - oy0, gx0 - s - ox0)
+    np.subtract(np.float32(1.0), keep, out=keep)
+    for ch in range(3):
+        acc[ch, oy0:oy1, ox0:ox1] *= keep
+        src = rgb[gy0:gy1, gx0:gx1, ch]
+        conv.add_into(lambda y0, y1, x0, x1, out: np.multiply(src[y0:y1, x0:x1], a_src[y0:y1, x0:x1], out=out),
+                      acc[ch], gy0 - s, gx0 - s)
+
+
+def level_grid(cmin: float, cmax: float, level_step: float, level_ratio: float = 0.0) -> np.ndarray:
+    """CoC levels (pixels) from c_min up to the first level >= c_max: c_0 = c_min and
+    c_{k+1} = c_k + max(level_step, level_ratio * |c_k|). With level_ratio 0 the step is fixed;
+    above 0 it grows with the radius, where neighbouring kernels differ relatively less."""
+    if cmax <= cmin:
+        return np.array([float(cmin)])
+    if level_ratio <= 0.0:
+        n = max(int(math.ceil((cmax - cmin) / level_step)), 1) + 1
+        return cmin + level_step * np.arange(n)
+    levels = [float(cmin)]
+    while levels[-1] < cmax:
+        c = levels[-1]
+        levels.append(c + max(level_step, level_ratio * abs(c)))
+    return np.array(levels)
+
+
+def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0):
+    """CoC levels (pixels, `level_grid` from c_min) covering [c_min, c_max], and for each pixel
+    its lower level index k0 and the weight f of level k0+1 (1 - f goes to level k0), linear
+    in the pixel's CoC between the two levels.
+
+    Anchoring the levels at c_min keeps the result continuous in focus, max_coc and the map (a
+    new top level enters with weight 0); a constant map is a single level.
+    """
+    cmin, cmax = float(cmap.min()), float(cmap.max())
+    levels = level_grid(cmin, cmax, level_step, level_ratio)
+    if levels.size == 1:
+        return levels, np.zeros(cmap.shape, np.int32), np.zeros(cmap.shape, np.float32)
+    n = levels.size
+    c = cmap.astype(np.float64)
+    if level_ratio <= 0.0:
+        t = (c - cmin) / level_step
+        k0 = np.clip(np.floor(t), 0, n - 2).astype(np.int32)
+        f = np.clip(t - k0, 0.0, 1.0).astype(np.float32)
+    else:
+        k0 = np.clip(np.searchsorted(levels, c, side="right") - 1, 0, n - 2).astype(np.int32)
+        f = np.clip((c - levels[k0]) / (levels[k0 + 1] - levels[k0]), 0.0, 1.0).astype(np.float32)
+    return levels, k0, f
+
+
+def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, backmost, level_step,
+                       level_ratio) -> None:
+    """Normalized level scatter of a plane with a disparity map, composited "over" `acc`.
+
+    Work region: O, the output (the frame for the backmost plane, else the alpha box grown by
+    the largest kernel), and E, O grown by that kernel again (the pixels that reach O; outside
+    the frame the colour is edge-replicated for the backmost plane and zero otherwise, the CoC
+    map is always edge-replicated). A map that is a broadcast row or column (a ramp) keeps its
+    levels as one row or column."""
+    _, H, W = acc.shape
+    cm = coc_radius(compact(np.asarray(dmap, dtype=np.float32)), focus, max_coc)
+    smax = support_radius(max(abs(float(cm.min())), abs(float(cm.max()))))
+    if backmost:
+        oy0, oy1, ox0, ox1 = 0, H, 0, W
+    else:
+        oy0, oy1 = max(box[0] - smax, 0), min(box[1] + smax, H)
+        ox0, ox1 = max(box[2] - smax, 0), min(box[3] + smax, W)
+    ey0, ey1, ex0, ex1 = oy0 - smax, oy1 + smax, ox0 - smax, ox1 + smax
+    he, we = ey1 - ey0, ex1 - ex0
+    iy = np.clip(np.arange(ey0, ey1), 0, H - 1) if cm.shape[0] > 1 else np.zeros(1, np.intp)
+    ix = np.clip(np.arange(ex0, ex1), 0, W - 1) if cm.shape[1] > 1 else np.zeros(1, np.intp)
+    c_e = cm[np.ix_(iy, ix)]  # compact along broadcast axes
+    levels, k0c, fc = level_weights(c_e, level_step, level_ratio)
+    one = backmost and is_one(alpha)
+    # A map constant along x (or y) has weights constant along it: the weight channel's blur
+    # is then a 1-D convolution with the kernel's projection (no FFT), kept as a column/row.
+    along = 0 if c_e.shape[1] == 1 else (1 if c_e.shape[0] == 1 else None)
+    # Accumulators over O: premultiplied colour (straight into acc for the backmost plane:
+    # acc is still black), alpha (not for an opaque backmost plane) and weight.
+    oh, ow = oy1 - oy0, ox1 - ox0
+    col = acc[:, oy0:oy1, ox0:ox1] if backmost else np.zeros((3, oh, ow), np.float32)
+    a_acc = None if backmost else np.zeros((oh, ow), np.float32)
+    w_acc = np.zeros((oh, 1) if along == 0 else (1, ow) if along == 1 else (oh, ow), np.float32)
+    # Level k touches pixels with k0 in {k-1, k}: a superset box from per-row/column ranges.
+    rlo, rhi = k0c.min(axis=1), k0c.max(axis=1) + 1
+    clo, chi = k0c.min(axis=0), k0c.max(axis=0) + 1
+    if rlo.size == 1:
+        rlo, rhi = np.broadcast_to(rlo, he), np.broadcast_to(rhi, he)
+    if clo.size == 1:
+        clo, chi = np.broadcast_to(clo, we), np.broadcast_to(chi, we)
+    for k, ck in enumerate(levels):
+        rows = np.flatnonzero((rlo <= k) & (rhi >= k))
+        cols = np.flatnonzero((clo <= k) & (chi >= k))
+        if rows.size == 0 or cols.size == 0:
+            continue
+        s = support_radius(ck)
+        # only pixels within s of O reach it: E is O grown by smax >= s
+        y0, y1 = max(int(rows[0]), smax - s), min(int(rows[-1]) + 1, smax + oh + s)
+        x0, x1 = max(int(cols[0]), smax - s), min(int(cols[-1]) + 1, smax + ow + s)
+        if y1 <= y0 or x1 <= x0:
+            continue
+        sub = (slice(y0, y1) if k0c.shape[0] > 1 else slice(None), slice(x0, x1) if k0c.shape[1] > 1 else slice(None))
+        ksub, fsub = k0c[sub], fc[sub]  # compact along a broadcast axis
+        wsub = np.where(ksub == k, 1.0 - fsub, 0.0).astype(np.float32)
+        wsub += np.where(ksub == k - 1, fsub, 0.0)
+        if not wsub.any():
+            continue
+        conv = Convolver(float(ck), aperture, y1 - y0, x1 - x0)
+        # frame coordinates of the strip, and where its blur lands in O
+        fy0, fy1, fx0, fx1 = y0 + ey0, y1 + ey0, x0 + ex0, x1 + ex0
+        ty0, tx0 = fy0 - s - oy0, fx0 - s - ox0
+        if along == 0:
+            add_clipped(w_acc, ty0, 0, np.convolve(wsub[:, 0], conv.k.sum(axis=1))[:, None])
+        elif along == 1:
+            add_clipped(w_acc, 0, tx0, np.convolve(wsub[0], conv.k.sum(axis=0))[None, :])
+        else:
+            conv.add_into(copy_tile(wsub), w_acc, ty0, tx0)
+        a_sub = None if one else grab(alpha, fy0, fy1, fx0, fx1, backmost)
+        wa = np.broadcast_to(wsub if one else wsub * a_sub, (y1 - y0, x1 - x0))
+        if a_acc is not None:
+            conv.add_into(copy_tile(wa), a_acc, ty0, tx0)
+        for ch in range(3):  # each channel of the strip read straight into the FFT's buffer
+            def tile(a, b, c, d, out, ch=ch):
+                grab(rgb[:, :, ch], fy0 + a, fy0 + b, fx0 + c, fx0 + d, backmost, out)
+                out *= wa[a:b, c:d]
+            conv.add_into(tile, col[ch], ty0, tx0)
+    np.maximum(w_acc, 1e-12, out=w_acc)
+    inv = np.reciprocal(w_acc, out=w_acc)
+    if backmost:
+        col *= inv[None]
+        return
+    a_acc *= inv
+    inv = np.broadcast_to(inv, (oh, ow))
+    region = acc[:, oy0:oy1, ox0:ox1]
+    keep = 1.0 - a_acc
+    for ch in range(3):
+        col[ch] *= inv
+        region[ch] *= keep
+        region[ch] += col[ch]
+
+
+def render_layered(planes, focus: float, max_coc: float, aperture, options) -> np.ndarray:
+    """The layered render of validated planes (back to front): linear RGB (3, H, W) float32,
+    the premultiplied composite over black. `options`: a dofsynth.render.RenderOptions (its
+    level_step and level_ratio)."""
+    H, W = planes[0].shape
+    acc = np.zeros((3, H, W), dtype=np.float32)  # planar: contiguous per-channel updates
+    for i, plane in enumerate(planes):
+        backmost = i == 0
+        alpha = np.asarray(plane.alpha, dtype=np.float32)
+        rgb = np.asarray(plane.rgb, dtype=np.float32)
+        if backmost:
+            box = (0, H, 0, W)
+        elif plane.box is not None:  # alpha is 0 outside it: the bounding box of alpha > 0 inside
+            by0, by1, bx0, bx1 = (int(v) for v in plane.box)
+            inner = alpha_box(alpha[by0:by1, bx0:bx1]) if by1 > by0 and bx1 > bx0 else None
+            box = None if inner is None else (by0 + inner[0], by0 + inner[1], bx0 + inner[2], bx0 + inner[3])
+        else:
+            box = alpha_box(alpha)
+        if box is None:  # fully transparent: nothing to add
+            continue
+        d = plane.constant_disparity()
+        if d is not None:
+            _composite_constant(acc, rgb, alpha, box, coc_radius(d, focus, max_coc), aperture, backmost)
+        else:
+            _composite_varying(acc, rgb, alpha, plane.disparity_map(), box, max_coc, focus, aperture,
+                               backmost, options.level_step, options.level_ratio)
+    return acc

@@ -1,0 +1,68 @@
+"""One sample rendered: `render_sample(scene, library)` -> its tar members `{suffix: bytes}`.
+
+Everything comes from the scene (its targets, aperture and options), so a sample can be
+re-rendered from its JSON record alone (`verify --deep`, focus sweeps):
+- `aif.png`: the planes composited with no blur, encoded in row blocks before any boost;
+- `depth.exr`, `cover.png`: the disparity map and the two coverages (dofsynth.record);
+- `dof.N.png`: `render_planes(planes, focus_N, max_coc_N, aperture)`, each plane's colour
+  highlight-boosted first when `options.highlight` is set (dofsynth.color.highlight_boost).
+  With `options.linear_light = false` (the naive baseline) the planes are sRGB-encoded before
+  the blur and the result is stored as it is.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, replace
+
+import numpy as np
+
+from dofsynth.assets import AssetLibrary
+from dofsynth.color import highlight_boost, linear_to_srgb
+from dofsynth.compose import scene_layers
+from dofsynth.io import encode_exr
+from dofsynth.record import (encode_alphas, encode_png8, encode_record, encode_srgb_png_planar,
+                             encode_srgb_png_rows, sample_record)
+from dofsynth.render import render_planes
+from dofsynth.scene import Scene, Target
+
+
+def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
+    """Render one scene to its tar members {suffix: bytes} (see the module docstring)."""
+    layers = scene_layers(scene, library)
+    planes = list(layers.planes)
+    # Encode the un-blurred members first and drop their arrays (peak memory at large sizes).
+    members: dict[str, bytes] = {
+        "aif.png": encode_srgb_png_rows(layers.aif_rows, *layers.disparity.shape),
+        "depth.exr": encode_exr(np.asarray(layers.disparity, dtype=np.float32)),
+        "cover.png": encode_alphas(planes[2].alpha, planes[1].alpha),
+    }
+    del layers
+    hl = scene.options.highlight
+    if hl is not None:  # the planes are this call's own fresh arrays: boost in place
+        for i, p in enumerate(planes):
+            rgb = p.rgb
+            if i > 0:  # a cutout's colour is 0 outside its alpha box
+                y0, y1, x0, x1 = p.box
+                if y1 <= y0 or x1 <= x0:
+                    continue
+                rgb = rgb[y0:y1, x0:x1]
+            highlight_boost(rgb, **asdict(hl), out=rgb)
+    linear_light = scene.options.linear_light
+    if not linear_light:  # the naive baseline: blur sRGB-encoded values, store them as they are
+        planes = [replace(p, rgb=linear_to_srgb(p.rgb)) for p in planes]
+    for n, t in enumerate(scene.targets):
+        if linear_light:  # planar (3, H, W): encoded in row blocks, no interleaved frame copy
+            img = render_planes(planes, float(t.focus), float(t.max_coc), scene.aperture, planar=True)
+            members[f"dof.{n}.png"] = encode_srgb_png_planar(img)
+        else:
+            img = render_planes(planes, float(t.focus), float(t.max_coc), scene.aperture)
+            members[f"dof.{n}.png"] = encode_png8(np.clip(img, 0.0, 1.0))
+        del img
+    members["json"] = encode_record(sample_record(scene))
+    return members
+
+
+def focus_sweep(scene: Scene, library: AssetLibrary, focuses, max_coc: float | None = None) -> dict[str, bytes]:
+    """The members of `scene` re-rendered with one target per focus value (at `max_coc`, by
+    default its first target's): `dof.N.png` is focus N. For QA pages (dofsynth.qa)."""
+    coc = float(scene.targets[0].max_coc if max_coc is None else max_coc)
+    return render_sample(replace(scene, targets=tuple(Target(float(f), coc) for f in focuses)), library)
