@@ -35,10 +35,7 @@ class ManifestError(ValueError):
 
 def recipe_block(recipe) -> dict:
     """The recipe as the manifest stores it: full text, sha256, path (as given), name."""
-    path = getattr(recipe, "path", None)
-    name = getattr(recipe, "name", None) or (Path(str(path)).stem if path else "recipe")
-    return {"text": recipe.text, "sha256": recipe.sha256,
-            "path": str(path) if path is not None else None, "name": str(name)}
+    return {"text": recipe.text, "sha256": recipe.sha256, "path": str(recipe.path), "name": recipe.name}
 
 
 def build_manifest(recipe, shards: dict[str, list[ShardInfo]], *, limits: dict[str, int | None] | None = None,

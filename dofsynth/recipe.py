@@ -19,7 +19,6 @@ from dofsynth.files import sha256_bytes
 from dofsynth.optics.aperture import APERTURES
 
 BUILTIN = "builtin"
-RecipeError = ConfigError  # a recipe that cannot be used (the name recipes' callers know)
 dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
 
 

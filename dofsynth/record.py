@@ -110,7 +110,7 @@ def encode_srgb_png_rows(rows, h: int, w: int) -> bytes:
     bgr = np.empty((h, w, 3), np.uint8)
     for r0 in range(0, h, _ROWS):
         r1 = min(r0 + _ROWS, h)
-        bgr[r0:r1] = linear_to_srgb8(rows(r0, r1))[:, :, ::-1]
+        bgr[r0:r1] = swap_rb(linear_to_srgb8(rows(r0, r1)))
     return encode_png_bgr(bgr, PNG_PARAMS)
 
 

@@ -1,6 +1,6 @@
 """Shared fixtures: tiny synthetic asset folders, recipe writers, the smoke recipe and its library.
 
-Real photos live in /work/shared/assets (`shared_assets`); they are never copied into the project.
+Real photos live in ../shared/assets beside the project (the `shared_assets` fixture); they are never copied into the project.
 Fixtures that write files do so under pytest's tmp_path.
 """
 from __future__ import annotations
@@ -85,7 +85,14 @@ def noise_rgb(h: int, w: int, seed: int, dtype=np.uint8) -> np.ndarray:
 
 @pytest.fixture(scope="session")
 def shared_assets() -> Path:
-    assert (SHARED_ASSETS / "SOURCES.md").is_file(), f"missing real test assets at {SHARED_ASSETS}"
+    """The real photos and mattes beside the project (../shared/assets). Tests that need them
+    skip with a one-line reason where they are absent, but fail in CI (CI set), where they
+    must be."""
+    if not (SHARED_ASSETS / "SOURCES.md").is_file():
+        why = f"real test photos not found at {SHARED_ASSETS} (../shared/assets beside the project)"
+        if os.environ.get("CI"):
+            pytest.fail(f"{why}; CI must run the tests that use them")
+        pytest.skip(why)
     return SHARED_ASSETS
 
 

@@ -217,7 +217,7 @@ def test_splits_are_disjoint_deterministic_and_per_asset(smoke_recipe, smoke_lib
         assert train and test and not {a.id for a in train} & {a.id for a in test}
         assert len(train) + len(test) == len(lib.backgrounds if kind == "background" else lib.foregrounds)
     again = build_library(smoke_recipe)
-    assert all(again.split_of(a) == lib.split_of(a) for a in (*lib.backgrounds, *lib.foregrounds))
+    assert all(again.splits[a.id] == lib.splits[a.id] for a in (*lib.backgrounds, *lib.foregrounds))
 
 
 def test_split_is_stable_when_assets_are_added_and_duplicates_stay_together():
@@ -339,11 +339,11 @@ def test_8bit_loads_use_the_exact_table_and_the_cache_is_bounded(write_recipe, s
     a8 = cv2.imread(str(shared_assets / "alpha" / "rembg_car-2.png"), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(alpha, (a8 if a8.ndim == 2 else a8[..., -1]).astype(np.float32) / 255.0)
     assert lib.load_background(bg) is img  # cached
-    small = AssetLibrary(lib.backgrounds, lib.foregrounds, {a.id: lib.split_of(a) for a in (*lib.backgrounds, *lib.foregrounds)},
+    small = AssetLibrary(lib.backgrounds, lib.foregrounds, {a.id: lib.splits[a.id] for a in (*lib.backgrounds, *lib.foregrounds)},
                          cache_bytes=img.nbytes - 1)
     first = small.load_background(bg)
     assert small.load_background(bg) is not first and np.array_equal(small.load_background(bg), first)  # too big to keep
-    two = AssetLibrary(lib.backgrounds, lib.foregrounds, {a.id: lib.split_of(a) for a in (*lib.backgrounds, *lib.foregrounds)},
+    two = AssetLibrary(lib.backgrounds, lib.foregrounds, {a.id: lib.splits[a.id] for a in (*lib.backgrounds, *lib.foregrounds)},
                        cache_bytes=int(img.nbytes * 1.5))
     a, b = two.load_background(bg), two.load_background(lib["bg/kodak_kodim08"])
     assert two.load_background(lib["bg/kodak_kodim08"]) is b and two.load_background(bg) is not a  # evicted by bytes

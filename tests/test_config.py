@@ -4,8 +4,8 @@ from pathlib import Path
 
 import pytest
 
-from dofsynth.config import to_plain
-from dofsynth.recipe import BUILTIN, RecipeError, frame_size, load_recipe, recipe_from_text
+from dofsynth.config import ConfigError, to_plain
+from dofsynth.recipe import BUILTIN, frame_size, load_recipe, recipe_from_text
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -58,7 +58,7 @@ def test_frame_from_size_and_aspect(size, aspect, frame):
 
 def _error(write_recipe, **replace) -> str:
     p = write_recipe(replace=replace)
-    with pytest.raises(RecipeError) as exc:
+    with pytest.raises(ConfigError) as exc:
         load_recipe(p)
     msg = str(exc.value)
     assert str(p) in msg, msg
@@ -106,7 +106,7 @@ def test_missing_required_and_bad_toml(write_recipe, tmp_path):
     assert "seed" in msg and "missing" in msg
     bad = tmp_path / "bad.toml"
     bad.write_text("name = [", encoding="utf-8")
-    with pytest.raises(RecipeError, match="bad.toml.*not valid TOML"):
+    with pytest.raises(ConfigError, match="bad.toml.*not valid TOML"):
         load_recipe(bad)
     with pytest.raises(FileNotFoundError, match="nope.toml"):
         load_recipe(tmp_path / "nope.toml")
@@ -115,3 +115,37 @@ def test_missing_required_and_bad_toml(write_recipe, tmp_path):
 def test_recipe_is_frozen(smoke_recipe):
     with pytest.raises(Exception):
         smoke_recipe.seed = 3  # type: ignore[misc]
+
+
+def _doc_table(path: Path) -> dict[str, str]:
+    """{key: default cell} of the `| key | type / range | default | meaning |` table of a doc."""
+    rows, inside = {}, False
+    for line in path.read_text(encoding="utf-8").splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if cells[:3] == ["key", "type / range", "default"]:
+            inside = True
+        elif inside and line.startswith("|") and not set(cells[0]) <= set("-: "):
+            rows[cells[0].strip("`")] = cells[2]
+        elif inside and not line.startswith("|"):
+            break
+    return rows
+
+
+def test_the_docs_key_table_is_the_recipe_fields():
+    """docs/recipes.md lists every key the reader accepts, with the default on its field."""
+    import tomllib
+    from dataclasses import MISSING
+
+    from dofsynth.config import describe
+    from dofsynth.recipe import Recipe
+
+    table = _doc_table(ROOT / "docs" / "recipes.md")
+    fields = dict(describe(Recipe))
+    assert list(table) == list(fields)
+    for k, default in fields.items():
+        cell = table[k]
+        if default is MISSING:
+            assert cell == "*required*", k
+        else:
+            doc = tomllib.loads(f"v = {cell}")["v"]
+            assert doc == (list(default) if isinstance(default, tuple) else default), (k, cell, default)

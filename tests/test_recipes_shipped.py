@@ -40,7 +40,7 @@ def test_training_config_loads(path):
     assert cfg.loss.alpha == 1.5
 
 
-def test_shared_assets_recipe_pins_the_real_photos():
+def test_shared_assets_recipe_pins_the_real_photos(shared_assets):
     recipe = load_recipe(ROOT / "recipes" / "shared-assets.toml")
     lib = build_library(recipe)
     assert len(lib.backgrounds) == 5 and len(lib.foregrounds) == 6

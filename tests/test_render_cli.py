@@ -10,8 +10,11 @@ from dofsynth.cli import main
 from dofsynth.color import srgb_to_linear
 from dofsynth.io import encode_png, read_exr, read_image, write_exr, write_png
 
-ASSETS = Path(__file__).resolve().parents[2] / "shared" / "assets"
-PHOTO = ASSETS / "bg" / "kodak_kodim08.png"
+
+
+@pytest.fixture
+def photo(shared_assets) -> Path:
+    return shared_assets / "bg" / "kodak_kodim08.png"
 
 
 def sharpness(img, cols):
@@ -19,20 +22,20 @@ def sharpness(img, cols):
     return float(np.abs(np.diff(g, axis=0)).mean() + np.abs(np.diff(g, axis=1)).mean())
 
 
-def photo_size():
-    img = read_image(PHOTO)
+def photo_size(photo):
+    img = read_image(photo)
     return img.shape[0], img.shape[1]
 
 
-def test_renders_a_real_photo_with_a_ramp(tmp_path):
-    h, w = photo_size()
+def test_renders_a_real_photo_with_a_ramp(tmp_path, photo):
+    h, w = photo_size(photo)
     ramp = np.tile(np.linspace(1.0, 0.0, w, dtype=np.float32), (h, 1))  # near left, far right
     write_exr(tmp_path / "d.exr", ramp)
     out = tmp_path / "o" / "dof.png"
-    rc = main(["render", str(PHOTO), "--depth", str(tmp_path / "d.exr"), "--focus", "1.0", "--max-coc", "8",
+    rc = main(["render", str(photo), "--depth", str(tmp_path / "d.exr"), "--focus", "1.0", "--max-coc", "8",
                "--out", str(out)])
     assert rc == 0 and out.is_file()
-    src, res = read_image(PHOTO), read_image(out)
+    src, res = read_image(photo), read_image(out)
     assert res.shape == (h, w, 3)
     left, right = slice(0, 40), slice(w - 120, w - 8)
     # In focus at the left end (CoC < 0.5 px for x < 48: unchanged), strongly blurred at the right.
@@ -42,13 +45,13 @@ def test_renders_a_real_photo_with_a_ramp(tmp_path):
     assert abs(lin(res) - lin(src)) < 0.01
 
 
-def test_png_depth_focus_at_polygon_highlight_exr(tmp_path, capsys):
-    h, w = photo_size()
+def test_png_depth_focus_at_polygon_highlight_exr(tmp_path, capsys, photo):
+    h, w = photo_size(photo)
     d16 = np.tile(np.linspace(0, 65535, h).astype(np.uint16)[:, None], (1, w))
     (tmp_path / "d.png").write_bytes(encode_png(d16))
     out = tmp_path / "dof.exr"
     y = h // 2
-    rc = main(["render", str(PHOTO), "--depth", str(tmp_path / "d.png"), "--focus-at", f"10,{y}",
+    rc = main(["render", str(photo), "--depth", str(tmp_path / "d.png"), "--focus-at", f"10,{y}",
                "--max-coc", "6", "--aperture", "polygon:6:15", "--highlight", "--out", str(out)])
     assert rc == 0
     expect = np.uint16(np.linspace(0, 65535, h)[y]) / 65535  # median of a window on a vertical ramp
@@ -62,8 +65,8 @@ def run_err(argv, capsys):
     return rc, capsys.readouterr().err
 
 
-def test_errors_name_the_file(tmp_path, capsys):
-    h, w = photo_size()
+def test_errors_name_the_file(tmp_path, capsys, photo):
+    h, w = photo_size(photo)
     write_exr(tmp_path / "small.exr", np.zeros((h // 2, w), np.float32))
     write_exr(tmp_path / "bad.exr", np.full((h, w), 2.0, np.float32))
     write_png(tmp_path / "grey.png", np.zeros((h, w), np.float32))
@@ -71,24 +74,24 @@ def test_errors_name_the_file(tmp_path, capsys):
     base = ["--focus", "0.5", "--max-coc", "4", "--out", str(tmp_path / "o.png")]
     cases = [
         ([str(tmp_path / "nope.png"), "--depth", str(tmp_path / "grey.png")], "nope.png"),
-        ([str(PHOTO), "--depth", str(tmp_path / "missing.exr")], "missing.exr"),
-        ([str(PHOTO), "--depth", str(tmp_path / "small.exr")], "small.exr"),
-        ([str(PHOTO), "--depth", str(tmp_path / "bad.exr")], "bad.exr"),
+        ([str(photo), "--depth", str(tmp_path / "missing.exr")], "missing.exr"),
+        ([str(photo), "--depth", str(tmp_path / "small.exr")], "small.exr"),
+        ([str(photo), "--depth", str(tmp_path / "bad.exr")], "bad.exr"),
         ([str(tmp_path / "junk.png"), "--depth", str(tmp_path / "grey.png")], "junk.png"),
     ]
     for argv, name in cases:
         rc, err = run_err(argv + base, capsys)
         assert rc == 2 and name in err, (name, err)
-    rc, err = run_err([str(PHOTO), "--depth", str(tmp_path / "grey.png"), "--focus", "0.5", "--max-coc",
+    rc, err = run_err([str(photo), "--depth", str(tmp_path / "grey.png"), "--focus", "0.5", "--max-coc",
                        "4", "--out", str(tmp_path / "o.jpg")], capsys)
     assert rc == 2 and "--out" in err
-    rc, err = run_err([str(PHOTO), "--depth", str(tmp_path / "grey.png"), "--focus", "0.5",
+    rc, err = run_err([str(photo), "--depth", str(tmp_path / "grey.png"), "--focus", "0.5",
                        "--out", str(tmp_path / "o.png")], capsys)
     assert rc == 2 and "--max-coc" in err
-    rc, err = run_err([str(PHOTO), "--depth", str(tmp_path / "grey.png"), "--focus-at", "9999,0",
+    rc, err = run_err([str(photo), "--depth", str(tmp_path / "grey.png"), "--focus-at", "9999,0",
                        "--max-coc", "4", "--out", str(tmp_path / "o.png")], capsys)
     assert rc == 2 and "--focus-at" in err
-    rc, err = run_err([str(PHOTO), "--depth", str(tmp_path / "grey.png"), "--focus", "0.5", "--max-coc",
+    rc, err = run_err([str(photo), "--depth", str(tmp_path / "grey.png"), "--focus", "0.5", "--max-coc",
                        "4", "--aperture", "star", "--out", str(tmp_path / "o.png")], capsys)
     assert rc == 2 and "--aperture" in err
     assert not (tmp_path / "o.png").exists()
@@ -103,8 +106,8 @@ def test_help(capsys):
         assert word in text
 
 
-def test_model_hook(tmp_path, monkeypatch):
-    h, w = photo_size()
+def test_model_hook(tmp_path, monkeypatch, photo):
+    h, w = photo_size(photo)
     write_exr(tmp_path / "d.exr", np.full((h, w), 0.5, np.float32))
     seen = {}
 
@@ -116,11 +119,11 @@ def test_model_hook(tmp_path, monkeypatch):
     fake.render_photo = render_photo
     monkeypatch.setitem(sys.modules, "dofsynth.train.infer", fake)
     out = tmp_path / "net.exr"
-    rc = main(["render", str(PHOTO), "--depth", str(tmp_path / "d.exr"), "--focus", "0.3", "--model", "runs/r1",
+    rc = main(["render", str(photo), "--depth", str(tmp_path / "d.exr"), "--focus", "0.3", "--model", "runs/r1",
                "--aperture-scale", "0.7", "--out", str(out)])
     assert rc == 0
     assert seen == {"run_dir": "runs/r1", "shape": (h, w, 3), "dshape": (h, w), "focus": 0.3, "ap": 0.7}
     np.testing.assert_allclose(read_exr(out, channels=None), 0.25)
-    rc = main(["render", str(PHOTO), "--depth", str(tmp_path / "d.exr"), "--focus", "0.3", "--model", "runs/r1",
+    rc = main(["render", str(photo), "--depth", str(tmp_path / "d.exr"), "--focus", "0.3", "--model", "runs/r1",
                "--aperture-scale", "1.5", "--out", str(out)])
     assert rc == 2

@@ -105,7 +105,7 @@ def test_each_split_uses_only_its_own_assets(demo):
     for split in ("train", "test"):
         for i in range(60):
             s = sample_scene(recipe, lib, split, i)
-            assert all(lib.split_of(ref.id) == split for ref in s.assets.values())
+            assert all(lib.splits[ref.id] == split for ref in s.assets.values())
 
 
 def test_asset_paths_are_recorded_relative_to_the_recipe(write_recipe, tiny_bg_dir, tiny_cutouts):

@@ -61,7 +61,7 @@ def test_tiles_show_the_sample_pixels(sheet4):
 
 def test_disparity_tile_follows_the_colour_map(sheet4):
     img, lay, samples = sheet4
-    lut = draw.colormap_lut().astype(int)
+    lut = draw.colorize_disparity(np.arange(256, dtype=np.float32)[None, :] / 255.0)[0].astype(int)
     ref = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[None], cv2.COLORMAP_TURBO)[0, :, ::-1]
     np.testing.assert_array_equal(lut, ref)           # OpenCV's TURBO, in RGB order
     assert lut[255, 0] > 2 * lut[255, 2] and lut[0, 2] > lut[0, 0]   # near red, far blue-violet

@@ -19,7 +19,6 @@ from dofsynth.train.infer import render_photo, upsampling_steps
 from dofsynth.train.models import DeepLensNet
 from test_train_data import make_dataset, tiny_config
 
-ASSETS = Path(__file__).resolve().parents[2] / "shared" / "assets"
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -100,9 +99,9 @@ def test_checkpoint_reload_gives_the_same_outputs(tmp_path):
         checkpoint.load_model(tmp_path / "nothing")
 
 
-def test_render_photo_on_a_real_photo(setup):
+def test_render_photo_on_a_real_photo(setup, shared_assets):
     _, _, _, run = setup
-    srgb = cv2.imread(str(ASSETS / "bg" / "kodak_kodim01.png"))[:, :, ::-1].astype(np.float32) / 255
+    srgb = cv2.imread(str(shared_assets / "bg" / "kodak_kodim01.png"))[:, :, ::-1].astype(np.float32) / 255
     photo = srgb_to_linear(cv2.resize(srgb, (150, 100), interpolation=cv2.INTER_AREA))
     disparity = np.tile(np.linspace(0.1, 0.9, 150, dtype=np.float32), (100, 1))
     disparity[30:70, 50:100] = 0.7

@@ -44,7 +44,7 @@ class AssetLibrary:
                  cache_bytes: int = CACHE_BYTES):
         self.backgrounds = sorted(backgrounds, key=lambda a: a.id)
         self.foregrounds = sorted(foregrounds, key=lambda a: a.id)
-        self._splits = dict(splits)
+        self.splits = dict(splits)
         self.skipped = list(skipped or [])
         self._by_id = {a.id: a for a in (*self.backgrounds, *self.foregrounds)}
         self._cache: OrderedDict[str, object] = OrderedDict()
@@ -68,14 +68,11 @@ class AssetLibrary:
         except KeyError:
             raise AssetError(f"{asset_id}: no such asset in this library") from None
 
-    def split_of(self, asset: Asset | str) -> str:
-        return self._splits[asset if isinstance(asset, str) else asset.id]
-
     def assets_for(self, kind: str, split: str) -> list[Asset]:
         if kind not in KINDS or split not in SPLITS:
             raise ValueError(f"kind must be one of {KINDS} and split one of {SPLITS}, got {kind!r}, {split!r}")
         pool = self.backgrounds if kind == "background" else self.foregrounds
-        return [a for a in pool if self._splits[a.id] == split]
+        return [a for a in pool if self.splits[a.id] == split]
 
     def _cached(self, key: str, make):
         if key in self._cache:

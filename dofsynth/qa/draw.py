@@ -51,11 +51,6 @@ def colorize_disparity(disparity: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(swap_rb(cv2.applyColorMap(q, COLORMAP)))
 
 
-def colormap_lut() -> np.ndarray:
-    """(256, 3) RGB uint8: the colour of each quantised disparity level."""
-    return colorize_disparity(np.arange(256, dtype=np.float32)[None, :] / 255.0)[0]
-
-
 def coverage_overlay(aif: np.ndarray, cover: np.ndarray, outline: int = 1) -> np.ndarray:
     """The image dimmed, the front coverage tinted red and the middle one green (each by its
     alpha), with an outline at alpha 0.5. `aif` (H, W, 3) uint8 or float, `cover` (H, W, 2)."""

@@ -23,7 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dofsynth.files import atomic_write_bytes
+from dofsynth.files import atomic_write_bytes, canonical_json
 from dofsynth.io import decode_exr, decode_image, encode_png
 from dofsynth.optics.coc import coc_radius
 from dofsynth.qa import dataset as ds
@@ -284,5 +284,5 @@ def write_stats(out_dir, path=None, json_path=None, splits=None, progress=None) 
     jp = None
     if json_path is not None:
         jp = Path(json_path)
-        atomic_write_bytes(jp, (json.dumps(stats, indent=1, sort_keys=True) + "\n").encode("utf-8"))
+        atomic_write_bytes(jp, canonical_json(stats, indent=1))
     return png, jp, stats

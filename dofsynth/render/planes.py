@@ -114,7 +114,7 @@ def validate_planes(planes, focus: float, max_coc: float, use_boxes: bool = True
         if d.ndim != 0 and d.shape != shape:
             raise ValueError(f"planes[{i}].disparity must be a float or {shape}, got shape {d.shape}")
         inside = (slice(None), slice(None))
-        box = getattr(p, "box", None)
+        box = p.box
         if box is not None:
             if (len(box) != 4 or not all(isinstance(v, (int, np.integer)) for v in box)
                     or not (0 <= box[0] <= box[1] <= shape[0] and 0 <= box[2] <= box[3] <= shape[1])):

@@ -171,6 +171,3 @@ def _check(x: torch.Tensor, channels: int, name: str, size=None) -> None:
     if size is not None and tuple(x.shape[-2:]) != tuple(size):
         raise ValueError(f"{name} must be {tuple(size)} in size, got {tuple(x.shape[-2:])}")
 
-
-def build_model(cfg: ModelConfig) -> DeepLensNet:
-    return DeepLensNet(cfg)
