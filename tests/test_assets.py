@@ -20,38 +20,45 @@ from conftest import blob_alpha, noise_rgb, write_png
 
 
 # ------------------------------------------------------------------------------ built-in assets
-def test_builtin_assets_are_many_sorted_and_deterministic(monkeypatch):
+def _in_a_fresh_process(code: str) -> str:
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+
+
+def test_builtin_assets_are_many_sorted_and_deterministic():
     bgs, fgs = builtin_assets("background"), builtin_assets("foreground")
     assert len(bgs) >= 12 and len(fgs) >= 12
     assert [a.id for a in bgs] == sorted(a.id for a in bgs)
     assert all(a.id.startswith("builtin:bg/") and a.path == a.id for a in bgs)
     assert all(a.id.startswith("builtin:fg/") and a.kind == "foreground" for a in fgs)
     assert len({a.sha256 for a in (*bgs, *fgs)}) == len(bgs) + len(fgs)
-    # regenerate from scratch: same pixels, same hashes
-    monkeypatch.setattr(B, "_PIXELS", {})
-    for a in fgs:
-        rgb, alpha = B.foreground_pixels(a.id.split("/", 1)[1])
-        assert B.pixels_sha256(rgb, alpha) == a.sha256
-    assert B.pixels_sha256(B.background_pixels("noise")) == next(a for a in bgs if a.id.endswith("/noise")).sha256
+    # drawn from scratch in another process: the same pixels, the same hashes
+    fresh = _in_a_fresh_process("from dofsynth.assets.builtin import builtin_assets as b\n"
+                                "print(' '.join(a.sha256 for k in ('background', 'foreground') for a in b(k)))")
+    assert fresh.split() == [a.sha256 for a in (*bgs, *fgs)]
 
 
-def test_a_pickled_library_carries_its_drawn_builtin_assets(monkeypatch):
-    """Spawn workers and Ray tasks get the parent's library: it carries the built-in pixels
-    drawn so far (not the decoded-asset cache), and the receiver adopts them, read-only."""
+def test_a_pickled_library_loads_the_same_pixels_in_another_process(tmp_path):
+    """Spawn workers and Ray tasks get the parent's library pickled (with the built-in pixels
+    drawn so far, not its decoded-asset cache): they load the same linear pixels."""
+    import hashlib
     import pickle
 
     lib = AssetLibrary(list(builtin_assets("background")), list(builtin_assets("foreground")), {})
-    noise = lib["builtin:bg/noise"]
-    lib.load_background(noise)  # fills the decoded cache, which must not travel
-    blob = pickle.dumps(lib)
-    monkeypatch.setattr(B, "_PIXELS", {})  # the receiving process: nothing drawn yet
-    got = pickle.loads(blob)
-    assert len(got._cache) == 0 and [a.id for a in got.backgrounds] == [a.id for a in lib.backgrounds]
-    assert set(B._PIXELS) == {a.path.split(":", 1)[1] for a in (*lib.backgrounds, *lib.foregrounds)}
-    px = B._PIXELS["bg/noise"]
-    assert not px.flags.writeable and B.pixels_sha256(px) == noise.sha256
-    assert B.background_pixels("noise") is px  # adopted, not drawn again
-    np.testing.assert_array_equal(got.load_background(noise), lib.load_background(noise))
+    lib.load_background(lib["builtin:bg/noise"])  # fills the decoded cache, which must not travel
+    (tmp_path / "lib.pkl").write_bytes(pickle.dumps(lib))
+    ids = ("builtin:bg/noise", "builtin:bg/astronaut")
+    got = _in_a_fresh_process(
+        "import hashlib, pickle, sys\n"
+        f"lib = pickle.loads(open({str(tmp_path / 'lib.pkl')!r}, 'rb').read())\n"
+        f"print(' '.join(hashlib.sha256(lib.load_background(lib[i]).tobytes()).hexdigest() for i in {ids!r}))\n"
+        "rgb, a = lib.load_foreground(lib['builtin:fg/hair-00'])\n"
+        "print(hashlib.sha256(rgb.tobytes() + a.tobytes()).hexdigest())")
+    want = [hashlib.sha256(lib.load_background(lib[i]).tobytes()).hexdigest() for i in ids]
+    rgb, a = lib.load_foreground(lib["builtin:fg/hair-00"])
+    assert got.split() == want + [hashlib.sha256(rgb.tobytes() + a.tobytes()).hexdigest()]
 
 
 def _mattes() -> dict[str, np.ndarray]:
