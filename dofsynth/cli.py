@@ -8,14 +8,21 @@ from __future__ import annotations
 import argparse
 import importlib
 import pkgutil
+import signal
 import sys
+import threading
 
 from dofsynth import __version__
 from dofsynth import commands
 
 
-class UserError(Exception):
-    """A problem with the user's input: printed as one clear line, exit status 2."""
+class Terminated(BaseException):
+    """SIGTERM (what SLURM, systemd and Kubernetes send first), raised in the main thread so
+    that a run stops as on Ctrl-C: the lock released, temp files removed, one line printed."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,20 +44,47 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _os_error(exc: OSError) -> str:
+    """An OSError in one line: what happened and to which file."""
+    what = exc.strerror or str(exc)
+    files = [f for f in (exc.filename, exc.filename2) if f]
+    return f"{what}: {' -> '.join(map(str, files))}" if files else what
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; every failure ends in one line on stderr and a non-zero status: 2 for a
+    problem with the input, 1 for a failure while working (a full disk, a dead worker), 130 on
+    Ctrl-C, 143 on SIGTERM. A command that can continue later says how (`resume_hint`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminate)
+    hint = getattr(args, "resume_hint", None)
+    again = f"; {hint(args)}" if hint else ""
+    name = f"dofsynth {args.command}"
     try:
         return int(args.func(args) or 0)
-    except (UserError, ValueError, FileNotFoundError) as exc:
-        print(f"dofsynth {args.command}: error: {exc}", file=sys.stderr)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"{name}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        print(f"{name}: error: {_os_error(exc)}{again}", file=sys.stderr)
+        return 1
+    except RuntimeError as exc:
+        print(f"{name}: error: {exc}{again}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
-        print(f"dofsynth {args.command}: interrupted", file=sys.stderr)
+        print(f"{name}: interrupted{again}", file=sys.stderr)
         return 130
+    except Terminated:
+        print(f"{name}: terminated (SIGTERM){again}", file=sys.stderr)
+        return 143
+    finally:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 if __name__ == "__main__":

@@ -122,14 +122,17 @@ def encode_exr(image: np.ndarray, channel: str = "Z") -> bytes:
     return out.getvalue()
 
 
+def _exr_channels(data, name: str) -> dict:
+    try:
+        return OpenEXR.File(io.BytesIO(data) if isinstance(data, bytes) else data).channels()
+    except Exception as exc:  # OpenEXR raises plain RuntimeErrors on malformed files
+        raise ImageReadError(f"{name}: not a readable EXR file ({exc})") from exc
+
+
 def decode_exr(data: bytes | io.IOBase, name: str = "<bytes>", channels: str | None = "Z") -> np.ndarray:
     """Decode EXR bytes. With `channels="Z"` return that channel as float32 (H, W); with None,
     all channels as (H, W, C) float32 in R, G, B, A order where present."""
-    try:
-        f = OpenEXR.File(io.BytesIO(data) if isinstance(data, bytes) else data)
-        chans = f.channels()
-    except Exception as exc:  # OpenEXR raises plain RuntimeErrors on malformed files
-        raise ImageReadError(f"{name}: not a readable EXR file ({exc})") from exc
+    chans = _exr_channels(data, name)
     if channels is not None:
         if channels not in chans:
             raise ImageReadError(f"{name}: EXR has no channel {channels!r} (has {sorted(chans)})")
@@ -150,14 +153,24 @@ def read_exr(path: str | os.PathLike, channels: str | None = "Z") -> np.ndarray:
 
 
 def read_depth(path: str | os.PathLike) -> np.ndarray:
-    """Read a disparity map (EXR: its 'Z' or only channel; else an 8/16-bit grey image scaled
-    to [0, 1]) as float32 (H, W)."""
+    """Read a disparity map as float32 (H, W): an EXR's 'Z' or only channel, or an 8/16-bit grey
+    image scaled to [0, 1] (grey stored as RGB is taken if its channels are equal). A colour
+    image is refused (ImageReadError): it is not a depth map."""
     path = Path(path)
     if path.suffix.lower() == ".exr":
-        img = read_exr(path, channels=None)
-    else:
-        img = read_image(path)
-    return np.ascontiguousarray(img[:, :, 0], dtype=np.float32)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such file")
+        f = _exr_channels(path.read_bytes(), str(path))
+        px = f["Z"].pixels if "Z" in f else next(iter(f.values())).pixels if len(f) == 1 else None
+        if px is None or px.ndim != 2:
+            raise ImageReadError(f"{path}: an EXR with channels {', '.join(sorted(f))} is an image, not a depth map "
+                                 "(one channel, or one named Z)")
+        return np.ascontiguousarray(px, dtype=np.float32)
+    img = read_image(path)
+    grey = img[:, :, 0]
+    if img.shape[2] >= 3 and not (np.array_equal(grey, img[:, :, 1]) and np.array_equal(grey, img[:, :, 2])):
+        raise ImageReadError(f"{path}: a colour image, not a depth map (a grey image, or an EXR of one channel)")
+    return np.ascontiguousarray(grey, dtype=np.float32)
 
 
 def write_png(path: str | os.PathLike, img: np.ndarray) -> None:

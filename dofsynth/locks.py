@@ -4,6 +4,10 @@
 `--shards A:B` runs hold it shared, each plus `OUT/.lock.part-A-B` exclusively, and refuse a
 live overlapping range. A lock file left by a killed run is not a lock (the kernel drops flock
 locks with their process), so it never blocks a later run.
+
+A run's worker processes hold `<its lock>.workers` shared while they live (dofsynth.generate.pool).
+Taking an exclusive lock refuses while such a file is held: workers of a killed run that are
+still alive would otherwise write into OUT beside the new run.
 """
 from __future__ import annotations
 
@@ -51,12 +55,30 @@ class OutputLock:
             if _same_file(self.path, fd):  # the holder we raced with may have unlinked it
                 break
             os.close(fd)
+        self.fd = fd
         if not self.shared:
+            alive = [p.name for p in self._workers_locks() if _held_at_all(p)]
+            if alive:
+                self.release()
+                raise OutputInUseError(f"{self.out}: worker processes of an earlier run are still alive and may write "
+                                       f"into this folder ({', '.join(alive)} is held); wait a few seconds for them to "
+                                       "end, or find and stop them (e.g. `fuser " + str(self.out / alive[0]) + "`)")
             os.ftruncate(fd, 0)
             os.write(fd, f"{os.getpid()}\n".encode())
             os.fsync(fd)
-        self.fd = fd
         return self
+
+    @property
+    def workers_path(self) -> Path:
+        """The lock file the holder's worker processes hold shared while they live."""
+        return self.path.with_name(self.path.name + ".workers")
+
+    def _workers_locks(self) -> list[Path]:
+        """The workers' lock files this lock must find free: its own; for the whole folder's
+        lock, every run's (ranges included)."""
+        if self.path.name == LOCK_NAME:
+            return sorted(self.out.glob(f"{LOCK_NAME}*.workers"))
+        return [self.workers_path]
 
     def _busy(self, holder: str) -> str:
         if holder:
@@ -80,6 +102,8 @@ class OutputLock:
                     pass
             else:
                 self.path.unlink(missing_ok=True)
+                if self.workers_path.exists() and not _held_at_all(self.workers_path):
+                    self.workers_path.unlink(missing_ok=True)
             fcntl.flock(self.fd, fcntl.LOCK_UN)
         finally:
             os.close(self.fd)
@@ -135,6 +159,11 @@ class RangeLock:
             raise
         return self
 
+    @property
+    def workers_path(self) -> Path:
+        """The lock file this range's worker processes hold shared while they live."""
+        return OutputLock(self.out, range_lock_name(self.first, self.stop)).workers_path
+
     def release(self) -> None:
         while self.locks:
             self.locks.pop().release()
@@ -160,5 +189,22 @@ def lock_state(path: str | os.PathLike) -> tuple[str, str]:
         return "stale", ""
     except BlockingIOError:
         return "held", os.read(fd, 64).decode(errors="replace").strip()
+    finally:
+        os.close(fd)
+
+
+def _held_at_all(path: Path) -> bool:
+    """Whether any process holds a flock (shared or exclusive) on `path`: probed with a
+    non-blocking exclusive lock, released at once."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    except BlockingIOError:
+        return True
     finally:
         os.close(fd)

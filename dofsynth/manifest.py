@@ -158,11 +158,13 @@ def save_summary(manifest: dict, path: str | os.PathLike) -> Path:
 
 # ---- progress file -------------------------------------------------------------------------
 
-def start_progress(out: str | os.PathLike, header: dict, name: str = PROGRESS_NAME) -> Path:
-    """Create `OUT/.progress.jsonl` (or `OUT/<name>`) with its header line (the run's plan),
-    atomically."""
+def start_progress(out: str | os.PathLike, header: dict, name: str = PROGRESS_NAME,
+                   shards: list[ShardInfo] = ()) -> Path:
+    """Write `OUT/.progress.jsonl` (or `OUT/<name>`) afresh, atomically: its header line (the
+    run's plan) and a line per shard already made and verified (kept by a resume)."""
     path = Path(out) / name
-    atomic_write_bytes(path, canonical_json({"header": header}))
+    lines = [canonical_json({"header": header})] + [canonical_json({"shard": i.to_dict()}) for i in shards]
+    atomic_write_bytes(path, b"".join(lines))
     return path
 
 
@@ -280,7 +282,7 @@ def merge_parts(paths) -> dict:
                                 f"{p} from {r1['path']} (sha256 {r1['sha256'][:12]}...)")
         for key, what in (("recipe", "recipe name or path"), ("dofsynth_version", "dofsynth version"),
                           ("plan", "plan (--split / --limit)"), ("recipe_samples", "recipe sample counts"),
-                          ("extra", "skipped assets")):
+                          ("extra", "skipped or used assets")):
             if first[key] != part[key]:
                 raise ManifestError(f"mixed parts: {p0} and {p} differ in their {what}: "
                                     f"{json.dumps(first[key])[:120]} vs {json.dumps(part[key])[:120]}")

@@ -17,6 +17,7 @@ from pathlib import Path
 from dofsynth.config import ConfigError, Range, error, key, parse_toml, read, read_text, table
 from dofsynth.files import sha256_bytes
 from dofsynth.optics.aperture import APERTURES
+from dofsynth.optics.coc import MAX_COC_PER_SIDE
 
 BUILTIN = "builtin"
 dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
@@ -128,6 +129,9 @@ def _check(r: Recipe, file: str) -> None:
     """The rules between keys: at least one sample, a ramp that falls, planes in front."""
     if r.samples.train + r.samples.test == 0:
         raise ConfigError(f"{file}: samples: expected at least one sample in train or test, got 0")
+    if r.focus.max_coc[1] > MAX_COC_PER_SIDE * r.size:
+        raise error(file, "focus.max_coc", f"a high end <= {MAX_COC_PER_SIDE * r.size} ({MAX_COC_PER_SIDE} x size)",
+                    list(r.focus.max_coc))
     bg, fg = r.scene.background, r.scene.foreground
     if bg.flat_share < 1.0 and not bg.b1[0] < bg.b0[0]:
         raise error(file, "scene.background.b1", f"a range whose low end is below scene.background.b0's low "

@@ -125,7 +125,7 @@ import dofsynth.shards as shards
 _write = shards.ShardWriter.write
 def slow(self, *a, **k):
     _write(self, *a, **k)
-    time.sleep(0.25)
+    time.sleep(0.6)
 shards.ShardWriter.write = slow
 from dofsynth.cli import main
 sys.exit(main(sys.argv[1:]))

@@ -97,6 +97,31 @@ def test_errors_name_the_file(tmp_path, capsys, photo):
     assert not (tmp_path / "o.png").exists()
 
 
+def test_faults_a_user_makes_end_in_one_line_and_leave_no_file(tmp_path, capsys):
+    """A huge --max-coc (bounded by the image size, not a MemoryError), --out naming a folder,
+    a colour EXR given as depth: refused naming the argument, nothing written."""
+    img = np.random.default_rng(0).random((40, 60, 3)).astype(np.float32)
+    write_png(tmp_path / "p.png", img)
+    write_exr(tmp_path / "d.exr", np.full((40, 60), 0.5, np.float32))
+    write_exr(tmp_path / "rgb.exr", img)
+    write_png(tmp_path / "colour.png", img)
+    (tmp_path / "folder").mkdir()
+    base = [str(tmp_path / "p.png"), "--focus", "0.2"]
+    rc, err = run_err(base + ["--depth", str(tmp_path / "d.exr"), "--max-coc", "100000", "--out",
+                              str(tmp_path / "o.png")], capsys)
+    assert rc == 2 and "max_coc 100000 px is more than 2 x the image's long side (60 px)" in err, err
+    rc, err = run_err(base + ["--depth", str(tmp_path / "d.exr"), "--max-coc", "4", "--out", str(tmp_path / "folder")],
+                      capsys)
+    assert rc == 2 and "is a folder" in err, err
+    for depth in ("rgb.exr", "colour.png"):
+        rc, err = run_err(base + ["--depth", str(tmp_path / depth), "--max-coc", "4", "--out",
+                                  str(tmp_path / "o.png")], capsys)
+        assert rc == 2 and depth in err and "not a depth map" in err, err
+    assert len(err.strip().splitlines()) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["colour.png", "d.exr", "folder", "p.png", "rgb.exr"]
+    assert not list((tmp_path / "folder").iterdir())
+
+
 def test_help(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["render", "--help"])

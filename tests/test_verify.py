@@ -131,7 +131,7 @@ def test_truncated_shard_is_caught(copy, capsys):
     assert rc == 1
     fails = [l for l in out.splitlines() if l.startswith("FAIL")]
     assert any(name in l and "size" in l for l in fails), out
-    assert any(name in l and "truncated or unreadable" in l for l in fails), out
+    assert any(name in l and "unreadable after" in l and "truncated" in l for l in fails), out
     assert all(name in l for l in fails), out
 
 
@@ -155,8 +155,24 @@ def test_shard_with_wrong_sample_count_is_caught(copy):
     (copy / "manifest.json").write_text(json.dumps(m))
     report = verify_dataset(copy)
     name = _shard(copy, "test", 0)
-    assert [p.where for p in report.problems] == [name], report.lines()
+    assert [p.where for p in report.problems] == [name, "manifest.json"], report.lines()
     assert "holds 2 samples" in report.problems[0].message and "says 3" in report.problems[0].message
+    assert "its recipe makes 2" in report.problems[1].message
+
+
+def test_a_manifest_edited_to_drop_a_shard_is_caught(copy):
+    """Every count made consistent with one shard less: the recipe's own count still tells."""
+    m = json.loads((copy / "manifest.json").read_text())
+    gone = m["splits"]["train"]["shards"].pop()
+    for block in (m["splits"]["train"], m["totals"]):
+        block["samples"] -= gone["samples"]
+        block["bytes"] -= gone["bytes"]
+    m["totals"]["shards"] -= 1
+    (copy / "manifest.json").write_text(json.dumps(m))
+    (copy / gone["path"]).unlink()
+    report = verify_dataset(copy)
+    assert [p.where for p in report.problems] == ["manifest.json"], report.lines()
+    assert "holds 4 samples in its shards, but its recipe makes 6" in report.problems[0].message
 
 
 def test_json_disagreeing_with_disparity_is_caught(copy, capsys):
@@ -291,7 +307,7 @@ def test_same_content_under_another_id_is_a_leak(copy):
     report = verify_dataset(copy)
     assert len(report.problems) == 1, report.lines()
     msg = str(report.problems[0])
-    assert f"asset sha256 {sha[:16]} is in both splits" in msg and f"{name}: {test0['key']}" in msg
+    assert f"asset sha256 {sha[:16]}... is in both splits" in msg and f"{name}: {test0['key']}" in msg
 
 
 def test_manifest_totals_are_checked(copy):

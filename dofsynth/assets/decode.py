@@ -11,6 +11,9 @@ from dofsynth.io import decode_exr, decode_image, unit_float
 
 MIN_SIDE = 64
 KINDS = ("background", "foreground")
+# Float assets (EXR, float TIFF) hold linear light: a colour above this is no photo (a bright
+# sun in an HDR photo is about 1e3-1e4) but a broken file; NaN and inf never pass.
+MAX_LINEAR = 65504.0  # the largest half float
 
 
 class AssetError(ValueError):
@@ -42,14 +45,42 @@ def is_exr(path: str) -> bool:
 def decode_asset(data: bytes, path: str, codes: bool = False) -> np.ndarray:
     """(H, W, C) pixels of an asset file: float32 (sRGB-encoded [0, 1] for 8/16-bit files,
     the stored values for EXR); with `codes`, 8-bit files come back as their uint8 codes (RGB(A)
-    order), so the loaders linearize through the exact 256-entry table. AssetError names a bad file."""
+    order), so the loaders linearize through the exact 256-entry table. AssetError names a bad
+    file: unreadable, or a float file with NaN, inf or values out of range (`check_values`)."""
     try:
         if is_exr(path):
-            return decode_exr(data, path, channels=None)
-        img = decode_image(data, path, raw=True)
-        return img if codes and img.dtype == np.uint8 else unit_float(img, path)
+            img = decode_exr(data, path, channels=None)
+        else:
+            raw = decode_image(data, path, raw=True)
+            if codes and raw.dtype == np.uint8:
+                return raw
+            float_file = raw.dtype.kind == "f"
+            img = unit_float(raw, path)
+            if not float_file:
+                return img
     except ValueError as exc:
         raise AssetError(str(exc)) from exc
+    check_values(img, path)
+    return img
+
+
+def check_values(img: np.ndarray, path: str) -> None:
+    """Refuse the pixels of a float file that no photo or matte has: NaN, inf, a colour above
+    MAX_LINEAR, an alpha (the last of 2 or 4 channels) outside [0, 1]."""
+    c = img.shape[2]
+    bad = ~np.isfinite(img)
+    if bad.any():
+        y, x, ch = (int(v[0]) for v in np.nonzero(bad))
+        raise AssetError(f"{path}: {int(bad.sum())} NaN or inf values (first at x={x}, y={y}, channel {ch})")
+    colour = img[:, :, : c - 1] if c in (2, 4) else img
+    if colour.size and float(np.abs(colour).max()) > MAX_LINEAR:
+        raise AssetError(f"{path}: colour values up to {float(np.abs(colour).max()):.3g}, beyond {MAX_LINEAR:g}: "
+                         "not an image of light")
+    if c in (2, 4):
+        a = img[:, :, c - 1]
+        lo, hi = float(a.min()), float(a.max())
+        if lo < -1e-3 or hi > 1.0 + 1e-3:
+            raise AssetError(f"{path}: alpha outside [0, 1] (from {lo:.4g} to {hi:.4g})")
 
 
 def image_header(path: str) -> tuple[int, int, int]:

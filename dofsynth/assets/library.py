@@ -21,7 +21,7 @@ from dofsynth.assets.pins import check_pins
 from dofsynth.assets.scan import Scan, Scanner, read_sources_licences, scan_backgrounds, scan_foregrounds
 from dofsynth.assets.splits import assign_splits
 from dofsynth.color import srgb8_to_linear
-from dofsynth.files import sha256_bytes
+from dofsynth.files import canonical_json, sha256_bytes
 from dofsynth.recipe import BUILTIN, Recipe
 from dofsynth.rng import SPLITS
 
@@ -61,6 +61,17 @@ class AssetLibrary:
     def __setstate__(self, state: dict) -> None:
         B.adopt(state.pop("_builtin_pixels", {}))
         self.__dict__.update(state)
+
+    def listing(self) -> dict[str, str]:
+        """{asset id: sha256} of every asset (a matte's after its photo's, joined by "+"), by id:
+        what a data set was made from, recorded in its manifest."""
+        return {a.id: a.sha256 + (f"+{a.alpha_sha256}" if a.alpha_sha256 else "")
+                for a in sorted((*self.backgrounds, *self.foregrounds), key=lambda a: a.id)}
+
+    def fingerprint(self) -> str:
+        """sha256 of `listing()` and the split of each asset: another photo, a changed or removed
+        one gives another fingerprint (a resume with it is refused)."""
+        return sha256_bytes(canonical_json([self.listing(), dict(sorted(self.splits.items()))]))
 
     def __getitem__(self, asset_id: str) -> Asset:
         try:

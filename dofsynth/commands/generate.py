@@ -71,7 +71,21 @@ def register(subparsers) -> None:
                    help="also write a short summary of the finished data set to PATH "
                         "(e.g. data_manifest/datasets/NAME.json)")
     p.add_argument("--quiet", action="store_true", help="no progress bar and no closing summary")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, resume_hint=resume_hint)
+
+
+def resume_hint(args) -> str:
+    """What to run to finish the data set after this run stopped (kept shards stay)."""
+    import shlex
+
+    cmd = ["dofsynth", "generate", args.recipe, "--out", str(args.out)]
+    for flag, value in (("--split", None if args.split == "all" else args.split), ("--limit", args.limit),
+                        ("--shards", args.shards), ("--workers", args.workers),
+                        ("--executor", None if args.executor == "local" else args.executor),
+                        ("--address", args.address)):
+        if value is not None:
+            cmd += [flag, str(value)]
+    return "resume with: " + shlex.join(cmd + ["--resume"]) + " (finished shards are kept)"
 
 
 def print_plan(recipe, splits, limit) -> None:

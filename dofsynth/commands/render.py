@@ -116,6 +116,8 @@ def run(args) -> int:
     from dofsynth.render import Plane, render_planes
 
     out = Path(args.out)
+    if out.is_dir():
+        raise ValueError(f"--out {out}: is a folder; give a file name ending in .png or .exr")
     if out.suffix.lower() not in (".png", ".exr"):
         raise ValueError(f"--out {out}: must end in .png or .exr")
     aperture = parse_aperture(args.aperture)

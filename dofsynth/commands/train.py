@@ -26,7 +26,8 @@ def register(subparsers) -> None:
                    help="where to train (auto = cuda when available)")
     p.add_argument("--steps", type=int_at_least(0), default=None, help="stop after step N this time (the LR schedule still runs to train.max_steps; "
                         "run again without --steps to continue)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, resume_hint=lambda args: "the last checkpoint is kept; run the same command again "
+                                                    "to continue from it")
 
 
 def run(args) -> int:

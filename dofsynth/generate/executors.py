@@ -1,13 +1,14 @@
 """Executors: who renders the shards of a `generate` run.
 
-One small interface: `Executor.run(recipe, out, tasks, limits, on_samples, on_submitted)`
+One small interface: `Executor.run(recipe, out, tasks, limits, on_samples, worker_lock)`
 submits one call of the pure `generate_shard` (dofsynth.generate.worker) per `ShardTask` and
 yields a `ShardDone` per finished shard, in any order. Everything else (the plan, the lock, the
 progress file and bar, resume, the manifest and the summary) stays in dofsynth.generate.run,
 the same for every executor.
 
-- `LocalExecutor(workers)`: in this process (workers=1) or a `spawn` process pool whose workers
-  take this process's asset library (built once per run); progress is reported per sample.
+- `LocalExecutor(workers)`: in this process (workers=1) or spawn worker processes
+  (dofsynth.generate.pool) that take this process's asset library (built once per run) and
+  die with it; progress is reported per sample.
 - `RayExecutor(address, max_retries, max_in_flight)`: one Ray task per shard on a local or
   remote Ray cluster (`pip install 'dofsynth[ray]'`); a task whose worker dies (killed, out of
   memory, node lost) is retried up to `max_retries` times, the retry rewriting the shard from
@@ -17,16 +18,14 @@ the same for every executor.
 """
 from __future__ import annotations
 
-import multiprocessing as mp
 import os
-import queue as queue_mod
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
 
 from dofsynth.generate.plan import ShardTask
+from dofsynth.generate.pool import run_pool
 from dofsynth.generate.worker import generate_shard, library_for, peak_rss_mb, setup_process
 from dofsynth.shards import ShardInfo
 
@@ -62,12 +61,13 @@ class Executor:
         """Release what `prepare` started."""
 
     def run(self, recipe, out: Path, tasks: list[ShardTask], limits: dict, on_samples: OnSamples | None = None,
-            on_submitted: Callable[[], None] | None = None) -> Iterator[ShardDone]:
+            worker_lock: Path | None = None) -> Iterator[ShardDone]:
         """Make every task's shard in `out`; yield a ShardDone per finished shard. Calls
-        `on_samples(path, n)` as samples are written (as often as the executor knows) and
-        `on_submitted()` once the tasks are handed out (the driver's own set-up can overlap).
-        Raises ValueError for a user error inside a task (naming the shard), RuntimeError for
-        a task that failed otherwise; tasks still pending are cancelled."""
+        `on_samples(path, n)` as samples are written (as often as the executor knows).
+        Processes it starts on this machine hold a shared flock on `worker_lock` while they
+        live (dofsynth.locks). Raises ValueError for a user error inside a task (naming the
+        shard), RuntimeError for a task that failed otherwise; when it returns or raises,
+        nothing it started writes into `out` any more."""
         raise NotImplementedError
 
 
@@ -78,24 +78,6 @@ def _shard_error(task: ShardTask, exc: BaseException) -> Exception:
 
 
 # ----------------------------------------------------------------------------------- local
-_POOL: dict = {"recipe": None, "queue": None}
-
-
-def _init_worker(recipe, q, library) -> None:
-    setup_process()
-    _POOL["recipe"], _POOL["queue"] = recipe, q
-    library_for(recipe, library)  # the parent's: asset folders scanned and hashed once
-
-
-def _worker_shard(out: str, task: ShardTask, limit: int | None) -> tuple[ShardInfo, float, float]:
-    """Pool task: (ShardInfo, seconds spent on the shard, this worker's peak MiB so far)."""
-    q = _POOL["queue"]
-    t0 = time.perf_counter()
-    info = generate_shard(_POOL["recipe"], out, task.split, task.index, limit=limit,
-                          on_sample=(lambda n: q.put((task.path, n))) if q is not None else None)
-    return info, time.perf_counter() - t0, peak_rss_mb()
-
-
 class LocalExecutor(Executor):
     """This machine: in-process for one worker (or one task), else a spawn process pool.
     `in_process=False` uses the pool even for one worker (a fresh process: benchmarks measure
@@ -112,17 +94,16 @@ class LocalExecutor(Executor):
     def describe(self) -> str:
         return f"local, {self.workers} worker{'s' if self.workers != 1 else ''}"
 
-    def run(self, recipe, out, tasks, limits, on_samples=None, on_submitted=None):
+    def run(self, recipe, out, tasks, limits, on_samples=None, worker_lock=None):
         if self.in_process if self.in_process is not None else (self.workers == 1 or len(tasks) <= 1):
-            yield from self._in_process(recipe, out, tasks, limits, on_samples, on_submitted)
+            yield from self._in_process(recipe, out, tasks, limits, on_samples)
         else:
-            yield from self._pool(recipe, out, tasks, limits, on_samples, on_submitted)
+            for t, info, seconds, rss in run_pool(self.workers, recipe, out, tasks, limits, on_samples, worker_lock):
+                yield ShardDone(t, info, seconds, rss)
 
     @staticmethod
-    def _in_process(recipe, out, tasks, limits, on_samples, on_submitted):
+    def _in_process(recipe, out, tasks, limits, on_samples):
         library = library_for(recipe) if tasks else None
-        if on_submitted is not None:
-            on_submitted()
         for t in tasks:
             ts = time.perf_counter()
             try:
@@ -131,41 +112,6 @@ class LocalExecutor(Executor):
             except (ValueError, FileNotFoundError) as exc:
                 raise _shard_error(t, exc) from exc
             yield ShardDone(t, info, time.perf_counter() - ts, peak_rss_mb())
-
-    def _pool(self, recipe, out, tasks, limits, on_samples, on_submitted):
-        ctx = mp.get_context("spawn")
-        q = ctx.Queue() if on_samples is not None else None
-        ex = ProcessPoolExecutor(max_workers=min(self.workers, len(tasks)), mp_context=ctx,
-                                 initializer=_init_worker, initargs=(recipe, q, library_for(recipe)))
-
-        def drain():
-            while q is not None:
-                try:
-                    path, n = q.get_nowait()
-                except (queue_mod.Empty, OSError, ValueError):
-                    return
-                on_samples(path, n)
-
-        try:
-            futures = {ex.submit(_worker_shard, str(out), t, limits[t.split]): t for t in tasks}
-            if on_submitted is not None:
-                on_submitted()
-            pending = set(futures)
-            while pending:
-                finished, pending = wait(pending, timeout=0.25, return_when=FIRST_COMPLETED)
-                drain()
-                for f in finished:
-                    t = futures[f]
-                    try:
-                        info, seconds, rss = f.result()
-                    except Exception as exc:
-                        raise _shard_error(t, exc) from exc
-                    yield ShardDone(t, info, seconds, rss)
-        except BaseException:
-            ex.shutdown(wait=False, cancel_futures=True)
-            raise
-        ex.shutdown(wait=True)
-        drain()
 
 
 # ------------------------------------------------------------------------------------- ray
@@ -224,7 +170,15 @@ class RayExecutor(Executor):
         if ray.is_initialized():
             return
         try:
-            ray.init(address=self.address, include_dashboard=False, logging_level="WARNING")
+            # Ray puts the driver's working folder first on its workers' sys.path: a folder there
+            # named dofsynth/ (data, another checkout) would shadow this package. Every path a
+            # task gets is absolute, so the driver joins from the folder that holds this package.
+            here = os.getcwd()
+            os.chdir(Path(__file__).resolve().parents[2])
+            try:
+                ray.init(address=self.address, include_dashboard=False, logging_level="WARNING")
+            finally:
+                os.chdir(here)
         except (ConnectionError, RuntimeError, ValueError) as exc:
             where = f"--address {self.address}" if self.address else "a local Ray instance"
             raise ValueError(f"--executor ray: cannot start or join {where}: {exc} (start a cluster with "
@@ -238,7 +192,7 @@ class RayExecutor(Executor):
             ray.shutdown()
             self._own = False
 
-    def run(self, recipe, out, tasks, limits, on_samples=None, on_submitted=None):
+    def run(self, recipe, out, tasks, limits, on_samples=None, worker_lock=None):
         import ray
 
         self.prepare()
@@ -255,8 +209,6 @@ class RayExecutor(Executor):
                                        self.task_hook)] = t
 
             submit()
-            if on_submitted is not None:
-                on_submitted()
             while refs:
                 ready, _ = ray.wait(list(refs), num_returns=1)
                 for ref in ready:

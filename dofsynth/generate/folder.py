@@ -32,12 +32,34 @@ class ResumeError(ValueError):
 
 
 def entries(out: Path) -> list[str]:
-    """The names in OUT but its lock file, sorted ([] for a folder that does not exist)."""
-    return sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME) if out.is_dir() else []
+    """The names in OUT but the lock files, sorted ([] for a folder that does not exist)."""
+    return sorted(p.name for p in out.iterdir() if not p.name.startswith(LOCK_NAME)) if out.is_dir() else []
 
 
-def previous_state(out: Path, recipe) -> tuple[dict[str, int | None], dict[str, ShardInfo]]:
-    """For --resume: the per-split limits of the earlier run and the shards it recorded."""
+def check_same_assets(out: Path, where: str, before: dict | None, now: dict) -> None:
+    """Refuse to resume with another asset library than the one `where` was begun with, naming
+    what changed (a folder of an older dofsynth that recorded none is not checked)."""
+    if not before or before.get("sha256") == now["sha256"]:
+        return
+    old, new = before.get("files", {}), now["files"]
+    added = sorted(set(new) - set(old))
+    gone = sorted(set(old) - set(new))
+    changed = sorted(k for k in set(old) & set(new) if old[k] != new[k])
+
+    def some(ids):
+        return f"{len(ids)} ({', '.join(ids[:3])}{', ...' if len(ids) > 3 else ''})" if ids else "0"
+
+    what = f"{some(added)} added, {some(gone)} removed, {some(changed)} changed"
+    if not (added or gone or changed):
+        what = "the same files in other splits"
+    raise ResumeError(f"{out}: {where} was made from another asset library: {what}; resume with the asset folders "
+                      "it was begun with, or choose a new --out folder (samples would mix two libraries)")
+
+
+def previous_state(out: Path, recipe, assets: dict) -> tuple[dict[str, int | None], dict[str, ShardInfo]]:
+    """For --resume: the per-split limits of the earlier run and the shards it recorded;
+    refuses another recipe, dofsynth version or asset library (`assets`: this run's
+    {"sha256", "files"} of dofsynth.assets.AssetLibrary)."""
     header, progressed = read_progress(out)
     manifest = load_manifest(out) if (out / MANIFEST_NAME).is_file() else None
     if header is None and manifest is None:
@@ -58,6 +80,10 @@ def previous_state(out: Path, recipe) -> tuple[dict[str, int | None], dict[str, 
     if prev_version != __version__:
         raise ResumeError(f"{out}: was made by dofsynth {prev_version}, this is {__version__} (samples would "
                           "differ); choose a new --out folder")
+    if header is not None:
+        check_same_assets(out, "it", header.get("assets"), assets)
+    if manifest is not None:
+        check_same_assets(out, "it", manifest.get("assets"), assets)
     limits: dict[str, int | None] = {}
     known: dict[str, ShardInfo] = {}
     if manifest is not None:
@@ -71,7 +97,9 @@ def previous_state(out: Path, recipe) -> tuple[dict[str, int | None], dict[str, 
 
 
 def verify_existing(out: Path, task: ShardTask, known: dict[str, ShardInfo]) -> ShardInfo | None:
-    """The ShardInfo of an already-written shard that matches the plan, or None."""
+    """The ShardInfo of an already-written shard that matches the plan, or None. A shard that
+    is there but does not match (another hash than recorded, other keys) is deleted at once:
+    it is remade, and a later resume must not take it for one never recorded."""
     final = out / task.path
     if not final.is_file():
         return None
@@ -79,11 +107,15 @@ def verify_existing(out: Path, task: ShardTask, known: dict[str, ShardInfo]) -> 
     info = ShardInfo(task.split, task.index, task.name, task.first_index, task.samples, sha, nbytes)
     rec = known.get(task.path)
     if rec is not None and (rec.first_index, rec.samples) == (task.first_index, task.samples):
-        return info if (rec.sha256, rec.bytes) == (sha, nbytes) else None
-    try:  # not recorded (killed between rename and progress line): check its sample keys
-        return info if shard_keys(final) == task.keys() else None
-    except ShardError:
-        return None
+        ok = (rec.sha256, rec.bytes) == (sha, nbytes)
+    else:  # not recorded (killed between rename and progress line): check its sample keys
+        try:
+            ok = shard_keys(final) == task.keys()
+        except ShardError:
+            ok = False
+    if not ok:
+        final.unlink()
+    return info if ok else None
 
 
 def remove_shard_temps(out: Path, paths: set[str] | None = None) -> list[str]:
@@ -120,7 +152,8 @@ def check_shared_folder(out: Path, recipe, header: dict, tasks: list[ShardTask],
             if PART_RE.match(name):
                 part = load_part(p)
                 other = {"recipe_sha256": part["recipe"]["sha256"], "dofsynth_version": part["dofsynth_version"],
-                         "limits": part["plan"]["limits"], "shards": part["plan"]["shards"]}
+                         "limits": part["plan"]["limits"], "shards": part["plan"]["shards"],
+                         "assets": part["extra"].get("assets")}
             else:
                 other = read_progress(out, name)[0]
                 if other is None:
@@ -132,6 +165,7 @@ def check_shared_folder(out: Path, recipe, header: dict, tasks: list[ShardTask],
             if any(other.get(k) != header[k] for k in same):
                 raise OutputNotEmptyError(f"{out}: holds {name}, of another plan (dofsynth version, --split or --limit "
                                           "differ); every --shards run into one OUT needs the same recipe and options")
+            check_same_assets(out, name, other.get("assets"), header["assets"])
             if (a, b) == (first, stop):
                 if not resume:
                     raise OutputNotEmptyError(f"{out}: shards {a}:{b} were made or begun here before ({name}); pass "

@@ -107,7 +107,7 @@ def _skipped_assets(library, recipe) -> list[list[str]]:
 
 
 def _make(recipe, out: Path, executor, tasks: list[ShardTask], todo: list[ShardTask], limits: dict,
-          record, progress: bool) -> tuple[float, float]:
+          record, progress: bool, worker_lock: Path) -> tuple[float, float]:
     """Render `todo` with `executor`, calling `record(info)` per finished shard, under one tqdm
     bar over all `tasks` (those already made count as done). Returns (largest peak MiB of the
     processes that rendered, seconds inside generate_shard summed over them)."""
@@ -130,8 +130,7 @@ def _make(recipe, out: Path, executor, tasks: list[ShardTask], todo: list[ShardT
     peak, busy = peak_rss_mb(), 0.0
     try:
         if todo:
-            for d in executor.run(recipe, out, todo, limits, on_samples=on_samples,
-                                  on_submitted=lambda: library_for(recipe)):
+            for d in executor.run(recipe, out, todo, limits, on_samples=on_samples, worker_lock=worker_lock):
                 on_samples(d.task.path, d.task.samples)
                 peak, busy = max(peak, d.peak_rss_mb), busy + d.seconds
                 record(d.info)
@@ -144,8 +143,9 @@ def _make(recipe, out: Path, executor, tasks: list[ShardTask], todo: list[ShardT
 class _Whole:
     """A run of the whole plan into OUT: manifest.json at the end."""
 
-    def __init__(self, recipe, out: Path, splits, limit, resume: bool):
+    def __init__(self, recipe, out: Path, splits, limit, resume: bool, assets: dict):
         self.recipe, self.out, self.splits, self.limit, self.resume = recipe, out, splits, limit, resume
+        self.assets = assets
         self.progress = PROGRESS_NAME
         self.final = out / MANIFEST_NAME
         self.own = None  # every shard's temp files are this run's to remove
@@ -160,12 +160,13 @@ class _Whole:
             raise OutputNotEmptyError(
                 f"{self.out}: already holds files ({', '.join(found[:4])}{', ...' if len(found) > 4 else ''}); "
                 "pass --resume to finish or extend that data set with the same recipe, or choose a new --out folder")
-        self.limits, self.known = previous_state(self.out, self.recipe) if self.resume else ({}, {})
+        self.limits, self.known = previous_state(self.out, self.recipe, self.assets) if self.resume else ({}, {})
         self.limits.update({s: self.limit for s in self.splits})
         self.plan_splits = [s for s in SPLITS if s in self.limits]
         self.limits = {s: self.limits[s] for s in self.plan_splits}
         self.tasks = [t for s in self.plan_splits for t in plan_split(self.recipe, s, self.limits[s])]
-        self.header = {"recipe_sha256": self.recipe.sha256, "dofsynth_version": __version__, "limits": self.limits}
+        self.header = {"recipe_sha256": self.recipe.sha256, "dofsynth_version": __version__, "limits": self.limits,
+                       "assets": self.assets}
         self.plan_size = len(self.tasks)
 
     def remove_stale(self) -> list[str]:
@@ -183,7 +184,8 @@ class _Whole:
 
     def write(self, done: list[ShardInfo], skipped) -> dict:
         shards = {s: [i for i in done if i.split == s] for s in self.plan_splits}
-        manifest = build_manifest(self.recipe, shards, limits=self.limits, extra={"skipped_assets": skipped})
+        manifest = build_manifest(self.recipe, shards, limits=self.limits,
+                                  extra={"skipped_assets": skipped, "assets": self.assets})
         write_manifest(self.out, manifest)
         return manifest
 
@@ -191,8 +193,8 @@ class _Whole:
 class _Range:
     """A `--shards A:B` run: shards A..B-1 of the plan, the partial manifest at the end."""
 
-    def __init__(self, recipe, out: Path, splits, limit, resume: bool, shard_range):
-        self.recipe, self.out, self.resume = recipe, out, resume
+    def __init__(self, recipe, out: Path, splits, limit, resume: bool, assets: dict, shard_range):
+        self.recipe, self.out, self.resume, self.assets = recipe, out, resume, assets
         self.splits = [s for s in SPLITS if s in splits]
         self.limits = {s: limit for s in self.splits}
         self.plan = plan_shards(recipe, self.splits, limit)
@@ -209,7 +211,7 @@ class _Range:
         self.tasks = self.plan[first:stop]
         self.own = {t.path for t in self.tasks}
         self.header = {"recipe_sha256": recipe.sha256, "dofsynth_version": __version__, "limits": self.limits,
-                       "range": [first, stop], "shards": total}
+                       "range": [first, stop], "shards": total, "assets": assets}
         self.progress = progress_part_name(first, stop)
         self.final = out / part_name(first, stop)
 
@@ -230,9 +232,26 @@ class _Range:
     def write(self, done: list[ShardInfo], skipped) -> dict:
         plan_info = {"splits": self.splits, "limits": self.limits, "shards": self.plan_size,
                      "split_shards": {s: sum(1 for t in self.plan if t.split == s) for s in self.splits}}
-        part = build_part(self.recipe, self.range, plan_info, done, extra={"skipped_assets": skipped})
+        part = build_part(self.recipe, self.range, plan_info, done, extra={"skipped_assets": skipped, "assets": self.assets})
         write_part(self.out, part)
         return part
+
+
+def _leave_nothing(out: Path, run, created: bool) -> None:
+    """After a run that failed with no shard made or kept: remove what it wrote (its progress
+    file, empty split folders, OUT itself if it made it), so the same command can run again,
+    unless OUT holds shards of an earlier run (their hashes are in the progress file)."""
+    shards = [p for s in SPLITS if (out / s).is_dir() for p in (out / s).iterdir()]
+    if shards:
+        return
+    (out / run.progress).unlink(missing_ok=True)
+    for s in SPLITS:
+        if (out / s).is_dir():
+            (out / s).rmdir()
+    if created and out.is_dir() and not entries(out):
+        for p in out.iterdir():  # stale lock files only
+            p.unlink(missing_ok=True)
+        out.rmdir()
 
 
 def _executor_for(executor, workers):
@@ -266,35 +285,41 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
         split_size(recipe, s, limit)  # validates split and limit
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a folder")
-    run = _Range(recipe, out, splits, limit, resume, shard_range) if shard_range is not None else \
-        _Whole(recipe, out, splits, limit, resume)
+    library = library_for(recipe)  # a bad asset folder stops the run here, before OUT is touched
+    assets = {"sha256": library.fingerprint(), "files": library.listing()}
+    run = _Range(recipe, out, splits, limit, resume, assets, shard_range) if shard_range is not None else \
+        _Whole(recipe, out, splits, limit, resume, assets)
     executor.prepare()  # e.g. join the Ray cluster, before OUT is touched
+    created = not out.exists()
+    done: list[ShardInfo] = []
     try:
-        with run.lock():
+        with run.lock() as lock:
             run.check()
             removed = run.remove_stale()
-            start_progress(out, run.header, run.progress)
-            run.final.unlink(missing_ok=True)  # rewritten last
-            done: list[ShardInfo] = []
             todo: list[ShardTask] = []
-            for t in run.tasks:
+            for t in run.tasks:  # the kept shards' hashes go into the new progress file...
                 info = verify_existing(out, t, run.known) if resume else None
-                if info is not None:
-                    done.append(info)
-                    append_progress(out, info, run.progress)
-                else:
-                    todo.append(t)
+                (done if info is not None else todo).append(info or t)
             kept = len(done)
+            start_progress(out, run.header, run.progress, done)
+            run.final.unlink(missing_ok=True)  # ...before the manifest that held them goes; rewritten last
 
             def record(info: ShardInfo) -> None:
                 done.append(info)
                 append_progress(out, info, run.progress)
 
-            peak, busy = _make(recipe, out, executor, run.tasks, todo, run.limits, record, progress)
-            removed += remove_shard_temps(out, run.own)  # of attempts that died and were retried
-            skipped = _skipped_assets(library_for(recipe), recipe)
+            try:
+                peak, busy = _make(recipe, out, executor, run.tasks, todo, run.limits, record, progress,
+                                   lock.workers_path)
+            finally:  # every worker has stopped: the temp files of dead or dropped attempts go
+                removed += remove_shard_temps(out, run.own)
+            skipped = _skipped_assets(library, recipe)
             manifest = run.write(done, skipped)
             remove_progress(out, run.progress)
+    except BaseException:
+        if not done:
+            _leave_nothing(out, run, created)
+        raise
     finally:
         executor.close()
     ranged = shard_range is not None

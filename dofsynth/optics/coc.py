@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
+# No lens blurs a point over more than the picture: max_coc (px) is at most this many times the
+# image's long side (px). Recipes and render_planes refuse more (its kernel would not fit in memory).
+MAX_COC_PER_SIDE = 2
+
 
 def coc_radius(disparity, focus: float, max_coc: float):
     """Signed circle-of-confusion radius in pixels, `c = max_coc * (disparity - focus)`:

@@ -161,7 +161,7 @@ def verify_dataset(out_dir: str | Path, deep: bool = False, deep_n: int = 8, see
                         progress(1)
             except ds.READ_ERRORS as exc:
                 broken = True
-                report.add(sh.path, f"truncated or unreadable after {len(seen)} samples: {exc}")
+                report.add(sh.path, f"unreadable after {len(seen)} samples: {exc}")
             report.samples += len(seen)
             report.splits[split] += len(seen)
             if seen != expected_keys and not broken:
@@ -181,10 +181,17 @@ def _span(keys: list[str]) -> str:
 def _check_totals(manifest: dict, shards: dict[str, list], report: Report) -> None:
     """The manifest's per-split and overall totals agree with its own shard list."""
     for split, infos in shards.items():
-        listed = manifest["splits"][split].get("samples")
+        block = manifest["splits"][split]
+        listed = block.get("samples")
         n = sum(sh.samples for sh in infos)
         if listed != n:
             report.add(MANIFEST_NAME, f"split {split!r} lists {listed} samples, its shards {n}")
+        made = block.get("recipe_samples")
+        want = made if block.get("limit") is None or made is None else min(made, block["limit"])
+        if want is not None and n != want:
+            report.add(MANIFEST_NAME, f"split {split!r} holds {n} samples in its shards, but its recipe makes {made}"
+                                      f" (limit {block.get('limit')}): {want} expected; shards are missing from "
+                                      "the manifest or the data set")
     totals = manifest.get("totals", {})
     for name, n in (("samples", sum(sh.samples for i in shards.values() for sh in i)),
                     ("shards", sum(len(i) for i in shards.values())),
@@ -227,8 +234,9 @@ def _check_leaks(assets: dict[str, dict], report: Report) -> None:
     for i, a in enumerate(splits):
         for b in splits[i + 1:]:
             for (kind, value) in sorted(set(assets[a]) & set(assets[b])):
+                shown = value if kind == "id" else value[:16] + "..."
                 report.add(assets[b][(kind, value)],
-                           f"asset {kind} {value[:16]} is in both splits: {b!r} here and {a!r} "
+                           f"asset {kind} {shown} is in both splits: {b!r} here and {a!r} "
                            f"at {assets[a][(kind, value)]}")
 
 

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dofsynth.optics.coc import MAX_COC_PER_SIDE
+
 
 @dataclass(frozen=True)
 class Plane:
@@ -102,6 +104,10 @@ def validate_planes(planes, focus: float, max_coc: float, use_boxes: bool = True
         raise ValueError(f"max_coc must be a finite radius in pixels >= 0, got {max_coc}")
     shape = None
     for i, p in enumerate(planes):
+        if i == 0 and np.ndim(p.rgb) == 3 and max_coc > MAX_COC_PER_SIDE * max(np.shape(p.rgb)[:2]):
+            side = max(np.shape(p.rgb)[:2])
+            raise ValueError(f"max_coc {max_coc:g} px is more than {MAX_COC_PER_SIDE} x the image's long side "
+                             f"({side} px): no lens blurs that much, and its kernel would not fit in memory")
         rgb, alpha = np.asarray(p.rgb), np.asarray(p.alpha)
         if rgb.ndim != 3 or rgb.shape[2] != 3:
             raise ValueError(f"planes[{i}].rgb must be (H, W, 3), got shape {rgb.shape}")

@@ -43,7 +43,13 @@ def unwrap(model: torch.nn.Module) -> torch.nn.Module:
 
 def save(path: str | Path, model, optimizer, step: int, epoch: int, batch: int, cfg: Config,
          best_val: float | None = None) -> None:
+    """Write the checkpoint atomically (temp name, fsync, rename); refuses weights holding NaN
+    or inf, so a good checkpoint is never replaced by a broken one."""
     path = Path(path)
+    bad = [n for n, p in unwrap(model).state_dict().items() if p.is_floating_point() and not torch.isfinite(p).all()]
+    if bad:
+        raise ValueError(f"step {step}: not writing {path}: non-finite weights in {', '.join(bad[:3])}"
+                         f"{', ...' if len(bad) > 3 else ''} (the last checkpoint is kept)")
     state = {"model": unwrap(model).state_dict(), "optimizer": optimizer.state_dict(),
              "step": step, "epoch": epoch, "batch": batch, "config": cfg.to_dict(),
              "rng": rng_states(), "best_val": best_val, "format": FORMAT}

@@ -58,10 +58,11 @@ def find_shards(data_dir: str | Path, split: str) -> list[str]:
 
 
 def raw_samples(shards) -> Iterator[dict]:
-    """Every sample of the shards as a webdataset-style dict: {"__key__": key, suffix: bytes}."""
+    """Every sample of the shards as a webdataset-style dict: {"__key__": key, "__url__": the
+    shard's path, suffix: bytes}."""
     for shard in shards:
         for key, members in read_shard(shard):
-            yield {"__key__": key, **members}
+            yield {"__key__": key, "__url__": str(shard), **members}
 
 
 def peek_records(shard: str | Path, limit: int = 256) -> list[dict]:
@@ -95,20 +96,32 @@ def sample_rng(seed: int, epoch: int, split: str, index: int) -> np.random.Gener
 
 def training_item(sample: dict, cfg: Config, rng: np.random.Generator, *, crop: int | None = None,
                   target: int | None = None) -> dict:
-    """Decode one raw webdataset sample (member suffix -> bytes) into a training item.
+    """Decode one raw webdataset sample (member suffix -> bytes) into a training item; a sample
+    that cannot be used (a member missing or undecodable, NaN or inf in it) raises ValueError
+    naming its shard and key.
 
     crop: side of the aligned random crop (None: the whole image, trimmed to a multiple of
     2**levels). target: which DoF target (None: as [data] target says).
     """
     key = sample.get("__key__", "?")
+    try:
+        return _item(sample, key, cfg, rng, crop, target)
+    except (ValueError, KeyError) as exc:
+        what = f"missing member {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise ValueError(f"{sample.get('__url__', '<shard>')}: sample {key}: {what}") from exc
+
+
+def _item(sample: dict, key: str, cfg: Config, rng, crop, target) -> dict:
     record = json.loads(sample["json"])
     n_targets = len(record["targets"])
     if target is None:
         target = int(rng.integers(n_targets)) if cfg.data.target == "random" else int(cfg.data.target)
     if not 0 <= target < n_targets:
-        raise ValueError(f"sample {key}: target {target} requested, the sample has {n_targets}")
+        raise ValueError(f"target {target} requested, the sample has {n_targets}")
     image = decode_image(sample["aif.png"], f"{key}.aif.png")[:, :, :3]
     depth = decode_exr(sample["depth.exr"], f"{key}.depth.exr")
+    if not np.isfinite(depth).all():
+        raise ValueError(f"depth.exr holds {int((~np.isfinite(depth)).sum())} NaN or inf values")
     cover = decode_image(sample["cover.png"], f"{key}.cover.png")
     dof = decode_image(sample[f"dof.{target}.png"], f"{key}.dof.{target}.png")[:, :, :3]
     focus = float(record["targets"][target]["focus"])
@@ -122,7 +135,7 @@ def training_item(sample: dict, cfg: Config, rng: np.random.Generator, *, crop: 
         y0, x0, ch, cw = 0, 0, h - h % s, w - w % s
     else:
         if h < crop or w < crop:
-            raise ValueError(f"sample {key}: image {h}x{w} is smaller than the crop {crop}")
+            raise ValueError(f"image {h}x{w} is smaller than the crop {crop}")
         y0 = s * int(rng.integers((h - crop) // s + 1))
         x0 = s * int(rng.integers((w - crop) // s + 1))
         ch = cw = crop
@@ -137,6 +150,7 @@ def training_item(sample: dict, cfg: Config, rng: np.random.Generator, *, crop: 
         "target_lo": _chw(area_downsample(dof, s)), "target": _chw(dof),
         "disparity": _chw(corrupted),
         "focus": focus, "max_coc": max_coc, "target_index": target, "key": key,
+        "shard": str(sample.get("__url__", "")),
         "corruption": json.dumps(params, sort_keys=True),
     }
 

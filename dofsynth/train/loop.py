@@ -64,15 +64,32 @@ def batch_stream(dataset, loader, epoch: int, skip: int):
         epoch, skip = epoch + 1, 0
 
 
-def trim_log(path: Path, step: int) -> None:
-    """Drop log rows after `step` (logged after the last checkpoint of an interrupted run)."""
-    if not path.is_file():
+def prepare_log(path: Path, step: int) -> None:
+    """RUN/log.csv with its header and only the rows up to `step` (a killed run may have logged
+    past its last checkpoint, or died before writing a row or even its header)."""
+    rows = []
+    if path.is_file():
+        with open(path, newline="") as fh:
+            reader = csv.DictReader(fh)
+            rows = list(reader) if reader.fieldnames and "step" in reader.fieldnames else []
+        keep = [r for r in rows if r.get("step", "").isdigit() and int(r["step"]) <= step]
+        if keep == rows and rows:
+            return
+        rows = keep
+    atomic_write_bytes(path, csv_text(LOG_FIELDS, rows).encode())
+
+
+def check_finite(loss: torch.Tensor, batch: dict, step: int, last_saved: int | None) -> None:
+    """Stop at a non-finite loss, naming the samples of the batch (the one with NaN or inf in
+    its inputs, if any); nothing of this step is applied or saved."""
+    if bool(torch.isfinite(loss).item()):
         return
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    if all(int(r["step"]) <= step for r in rows):
-        return
-    atomic_write_bytes(path, csv_text(LOG_FIELDS, [r for r in rows if int(r["step"]) <= step]).encode())
+    where = [f"{k} ({s})" for k, s in zip(batch["key"], batch.get("shard", [""] * len(batch["key"])))]
+    bad = [w for i, w in enumerate(where)
+           if any(not torch.isfinite(batch[f][i]).all() for f in ("image", "signed_lo", "target"))]
+    kept = f"; the checkpoint of step {last_saved} is kept" if last_saved else ""
+    what = f"NaN or inf in the inputs of {', '.join(bad)}" if bad else f"batch of {', '.join(where)}"
+    raise ValueError(f"step {step + 1}: the loss is {loss.item()} ({what}){kept}")
 
 
 def to_device(batch: dict, device) -> dict:
@@ -161,6 +178,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
         step, epoch, batch_index, best_val = state["step"], state["epoch"], state["batch"] + 1, state["best_val"]
         checkpoint.set_rng_states(state["rng"])
         say(f"resuming {run_dir} at step {step}")
+    last_saved = step if state is not None else None
     end = t.max_steps if stop_at is None else min(int(stop_at), t.max_steps)
     if step >= end:
         say(f"{run_dir}: already trained to step {step} (stop at {end}, max_steps {t.max_steps})")
@@ -190,12 +208,9 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
     log_file = writer = tb = None
     if master:
         log_path = run_dir / "log.csv"
-        trim_log(log_path, step)
-        new_log = not log_path.is_file()
+        prepare_log(log_path, step)
         log_file = open(log_path, "a", newline="")
         writer = csv.DictWriter(log_file, fieldnames=LOG_FIELDS)
-        if new_log:
-            writer.writeheader()
         try:
             from torch.utils.tensorboard import SummaryWriter
             tb = SummaryWriter(str(run_dir / "tb"))
@@ -218,6 +233,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
             low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"])
         loss, j_low, j_high = deeplens_loss(low, high, b["target_lo"], b["target"],
                                             cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps, cfg.loss.l1)
+        check_finite(loss, b, step, last_saved)
         scaler.scale(loss).backward()
         if t.grad_clip > 0:
             scaler.unscale_(optimizer)
@@ -252,6 +268,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
             say(" ".join(f"{k} {v}" for k, v in row.items()))
         if master and (step % t.checkpoint_interval == 0 or last):
             checkpoint.save(ckpt_path, model, optimizer, step, epoch, batch_index, cfg, best_val)
+            last_saved = step
 
     # -- done ------------------------------------------------------------------------------------
     if master:

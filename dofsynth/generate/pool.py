@@ -1,0 +1,216 @@
+"""The local process pool of `generate --workers N`: spawn workers, one pipe each, that render
+the shards they are handed and die with their parent.
+
+Fault behaviour, by design:
+- Start-up arguments are small (the recipe and paths): the asset library is pickled once into
+  a private temp file that each worker reads, so a worker that dies while starting never
+  leaves the parent blocked writing a large pickle into its pipe.
+- The parent waits on every worker's pipe and process sentinel at once: a worker that dies
+  at any moment (killed, out of memory) ends the run within a second with `WorkerDied`
+  naming it and its shard; the other workers are terminated and joined before the run lets
+  go of OUT's lock, so nothing writes into OUT after it.
+- Workers die with their parent: on Linux by a parent-death signal (SIGKILL), elsewhere by a
+  thread watching the parent's pid; either way they also hold a shared flock on
+  `<run lock>.workers`, which a later run of the same OUT checks (dofsynth.locks), so the
+  promise "no two runs write into OUT at once" holds even against a straggler.
+- Workers ignore SIGINT (inherited from the parent while they start): Ctrl-C reaches the
+  parent alone, which stops the run and prints one line.
+"""
+from __future__ import annotations
+
+import fcntl
+import multiprocessing as mp
+import os
+import pickle
+import signal
+import sys
+import tempfile
+import threading
+import time
+import traceback
+from contextlib import contextmanager
+from multiprocessing.connection import wait
+from pathlib import Path
+
+from dofsynth.generate.plan import ShardTask
+from dofsynth.generate.worker import generate_shard, library_for, peak_rss_mb, setup_process
+
+_PR_SET_PDEATHSIG = 1
+
+
+class WorkerDied(RuntimeError):
+    """A worker process ended without finishing its shard (killed, out of memory, crashed)."""
+
+
+def _die_with(parent_pid: int) -> None:
+    """End this process as soon as `parent_pid` is no longer its parent."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            ctypes.CDLL("libc.so.6").prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent_pid:  # the parent died before the signal was armed
+        os._exit(1)
+
+    def watch():
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="dofsynth-parent-watch").start()
+
+
+def _hold_shared(lock_path: str | None):
+    """A shared flock on the run's workers lock, held until this process ends."""
+    if lock_path is None:
+        return None
+    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_SH)
+    return fd
+
+
+def _worker_main(conn, recipe, out: str, library_path: str, parent_pid: int, lock_path: str | None) -> None:
+    _die_with(parent_pid)
+    lock_fd = _hold_shared(lock_path)  # noqa: F841 (kept open for the process's life)
+    setup_process()
+    library = library_for(recipe, pickle.loads(Path(library_path).read_bytes()))
+    conn.send(("ready",))
+    while (msg := conn.recv()) is not None:
+        task, limit = msg
+        t0 = time.perf_counter()
+        try:
+            info = generate_shard(recipe, out, task.split, task.index, limit=limit, library=library,
+                                  on_sample=lambda n, p=task.path: conn.send(("sample", p, n)))
+        except (ValueError, FileNotFoundError) as exc:  # a user error (a bad asset): named, not retried
+            conn.send(("error", task.path, "user", str(exc)))
+            return
+        except BaseException as exc:
+            conn.send(("error", task.path, "crash", "".join(traceback.format_exception_only(exc)).strip()))
+            return
+        conn.send(("done", task.path, info, time.perf_counter() - t0, peak_rss_mb()))
+
+
+@contextmanager
+def _sigint_ignored():
+    """Children started inside inherit an ignored SIGINT (Python keeps an ignored one)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def _how_it_ended(p) -> str:
+    code = p.exitcode
+    if code is not None and code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit status {code}"
+
+
+def run_pool(workers: int, recipe, out, tasks: list[ShardTask], limits: dict, on_samples=None,
+             worker_lock: str | os.PathLike | None = None):
+    """Render `tasks` with `workers` spawn processes; yield (task, info, seconds, peak MiB) per
+    finished shard. Raises ValueError for a user error in a shard, WorkerDied for a worker
+    that died or crashed; on any exit every worker is stopped and joined first."""
+    ctx = mp.get_context("spawn")
+    n = min(workers, len(tasks))
+    with tempfile.TemporaryDirectory(prefix="dofsynth-pool-") as tmp:
+        lib_path = Path(tmp) / "library.pkl"
+        lib_path.write_bytes(pickle.dumps(library_for(recipe)))
+        procs, conns = [], []
+        try:
+            with _sigint_ignored():
+                for _ in range(n):
+                    parent_end, child_end = ctx.Pipe()
+                    p = ctx.Process(target=_worker_main, daemon=True, name="dofsynth-worker",
+                                    args=(child_end, recipe, str(out), str(lib_path), os.getpid(),
+                                          None if worker_lock is None else str(worker_lock)))
+                    p.start()
+                    child_end.close()
+                    procs.append(p)
+                    conns.append(parent_end)
+            yield from _dispatch(procs, conns, list(tasks), limits, on_samples)
+        finally:
+            _stop(procs, conns)
+
+
+def _dispatch(procs, conns, todo: list[ShardTask], limits: dict, on_samples):
+    by_path = {t.path: t for t in todo}
+    busy: dict[int, ShardTask | None] = {i: None for i in range(len(procs))}  # worker -> its shard
+    idle: set[int] = set()
+    left = len(todo)
+
+    def handle(i, msg):
+        """A worker's message; returns a finished shard's (task, info, seconds, MiB) or None."""
+        nonlocal left
+        kind = msg[0]
+        if kind == "ready":
+            idle.add(i)
+        elif kind == "sample":
+            if on_samples is not None:
+                on_samples(msg[1], msg[2])
+        elif kind == "done":
+            _, path, info, seconds, rss = msg
+            busy[i] = None
+            idle.add(i)
+            left -= 1
+            return by_path[path], info, seconds, rss
+        elif msg[2] == "user":  # "error": a user error (a bad asset) names the shard
+            raise ValueError(f"shard {msg[1]}: {msg[3]}")
+        else:
+            raise WorkerDied(f"a worker crashed making shard {msg[1]}: {msg[3]}")
+        return None
+
+    while left:
+        for i in sorted(idle):
+            if todo:
+                t = todo.pop(0)
+                conns[i].send((t, limits[t.split]))
+                busy[i] = t
+                idle.discard(i)
+        for r in wait([*conns, *(p.sentinel for p in procs)], timeout=1.0):
+            i = conns.index(r) if r in conns else next(k for k, p in enumerate(procs) if p.sentinel == r)
+            while conns[i].poll():  # what it said before it ended comes first
+                try:
+                    done = handle(i, conns[i].recv())
+                except (EOFError, OSError):
+                    break
+                if done is not None:
+                    yield done
+            if r not in conns and left:
+                p = procs[i]
+                p.join(0.1)
+                task = busy.get(i)
+                where = f"while making shard {task.path}" if task is not None else "while starting"
+                raise WorkerDied(f"worker process {p.pid} died ({_how_it_ended(p)}) {where}")
+
+
+def _stop(procs, conns) -> None:
+    """Tell idle workers to stop, terminate the busy ones (their shard is dropped: a temp file
+    at most) and join them all, so that nothing writes into OUT after this returns."""
+    for c in conns:
+        try:
+            c.send(None)
+        except (OSError, ValueError):
+            pass
+    deadline = time.monotonic() + 0.5
+    for p in procs:
+        p.join(max(0.0, deadline - time.monotonic()))
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    for p in procs:
+        p.join(5.0)
+        if p.is_alive():
+            p.kill()
+            p.join()
+    for c in conns:
+        c.close()
