@@ -1,4 +1,4 @@
-"""Colour transfer functions and the highlight boost.
+"""Colour transfer functions (the highlight boost is in dofsynth.highlight).
 
 All images in files are sRGB-encoded; every blur and composite happens in linear light
 (float32). Functions here are pure and vectorised over any array shape.
@@ -10,12 +10,20 @@ float64 sRGB formula for every float32 input, with no power function evaluated p
 """
 from __future__ import annotations
 
+from decimal import Decimal, localcontext
+
 import numpy as np
 
 
-def _srgb_decode64(x: np.ndarray) -> np.ndarray:
-    x = np.asarray(x, dtype=np.float64)
-    return np.where(x <= 0.04045, x / 12.92, ((np.maximum(x, 0.04045) + 0.055) / 1.055) ** 2.4)
+def srgb_decode_exact(v: float) -> float:
+    """The linear value of sRGB level v in [0, 1], correctly rounded to float64."""
+    if v <= 0.04045:
+        with localcontext() as ctx:
+            ctx.prec = 40
+            return float(Decimal(v) / Decimal("12.92"))
+    with localcontext() as ctx:
+        ctx.prec = 40
+        return float(((Decimal(v) + Decimal("0.055")) / Decimal("1.055")) ** Decimal("2.4"))
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -31,8 +39,9 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ lookup tables
-# 8-bit decode: the float64 formula at k/255, rounded once to float32 (exact to half an ulp).
-SRGB8_TO_LINEAR = _srgb_decode64(np.arange(256) / 255.0).astype(np.float32)
+# 8-bit decode: the formula at k/255 in exact decimal arithmetic, rounded once to float32 (the
+# same table on every machine: no platform power function involved).
+SRGB8_TO_LINEAR = np.array([srgb_decode_exact(k / 255.0) for k in range(256)]).astype(np.float32)
 SRGB8_TO_LINEAR.setflags(write=False)
 
 
@@ -54,7 +63,7 @@ def _encode_tables(bins: int):
     the bin's start and `step[i]` the threshold inside it times `bins` (exact: a power of two;
     +inf when there is none).
     """
-    t64 = _srgb_decode64((np.arange(255) + 0.5) / 255.0)
+    t64 = np.array([srgb_decode_exact((k + 0.5) / 255.0) for k in range(255)])
     t32 = t64.astype(np.float32)
     t32 = np.where(t32.astype(np.float64) < t64, np.nextafter(t32, np.float32(2.0)), t32).astype(np.float32)
     assert np.min(np.diff(t64)) > 1.0 / bins
@@ -108,55 +117,3 @@ def linear_to_srgb8(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         np.less_equal(_STEP.take(ii), tt, out=cc)  # t = clip(x) * bins exactly
         o += cc
     return out
-
-
-# ------------------------------------------------------------------------------- highlights
-def highlight_boost(
-    linear: np.ndarray, threshold: float = 0.9, gain: float = 4.0, power: float = 2.0,
-    *, out: np.ndarray | None = None,
-) -> np.ndarray:
-    """Turn near-white pixels into brighter-than-white light before blurring.
-
-    With `m = max(R, G, B)` of the *sRGB-encoded* pixel and `t = threshold`, every channel of
-    the linear pixel is multiplied by `1 + gain * s(m) ** power`, where
-    `s(m) = clip((m - t) / (1 - t), 0, 1)`. Pixels darker than `t` are unchanged; a pure white
-    pixel becomes `1 + gain` times brighter, so after blurring a small highlight still
-    saturates and spreads into a visible bokeh disc. The boost is continuous in the pixel value.
-
-    Only pixels whose linear max exceeds the linear value of `t` (less a margin) are touched,
-    so the cost is a max over the channels plus work proportional to the bright pixels.
-    `out=linear` boosts in place (float32 (..., C) input only); otherwise a new array.
-    """
-    if not 0.0 <= threshold < 1.0:
-        raise ValueError(f"highlight threshold must be in [0, 1), got {threshold}")
-    if gain < 0 or power <= 0:
-        raise ValueError(f"highlight gain must be >= 0 and power > 0, got {gain}, {power}")
-    linear = np.asarray(linear, dtype=np.float32)
-    if out is None:
-        out = linear.copy()
-    elif out is not linear:
-        out[...] = linear
-    if out.ndim == 3 and out.shape[0] > _BOOST_ROWS:  # row blocks: small temporaries at any size
-        for r in range(0, out.shape[0], _BOOST_ROWS):
-            block = out[r:r + _BOOST_ROWS]
-            _boost_block(block, threshold, gain, power)
-        return out
-    _boost_block(out if out.ndim > 1 else out[None], threshold, gain, power)  # one pixel: (1, C)
-    return out
-
-
-_BOOST_ROWS = 128
-
-
-def _boost_block(work: np.ndarray, threshold: float, gain: float, power: float) -> None:
-    """highlight_boost in place on a (..., C) float32 block (any strides)."""
-    m = work[..., 0].copy()  # max over channels (numpy's reduce over a short last axis is slow)
-    for c in range(1, work.shape[-1]):
-        np.maximum(m, work[..., c], out=m)
-    # s(m) > 0 needs srgb(m) > t, i.e. m > decode(t); the margin absorbs float32 rounding.
-    lo = float(_srgb_decode64(threshold)) * (1.0 - 1e-3) - 1e-6
-    idx = np.nonzero(m > lo)  # index tuples also write through a non-contiguous `out`
-    if idx[0].size:
-        ms = linear_to_srgb(m[idx])
-        s = np.clip((ms - threshold) / (1.0 - threshold), 0.0, 1.0)
-        work[idx] = (work[idx] * (1.0 + gain * s**power)[:, None]).astype(np.float32)

@@ -2,12 +2,14 @@
 
 Everything comes from the scene (its targets, aperture and options), so a sample can be
 re-rendered from its JSON record alone (`verify --deep`, focus sweeps):
-- `aif.png`: the planes composited with no blur, encoded in row blocks before any boost;
-- `depth.exr`, `cover.png`: the disparity map and the two coverages (dofsynth.record);
-- `dof.N.png`: `render_planes(planes, focus_N, max_coc_N, aperture)`, each plane's colour
-  highlight-boosted first when `options.highlight` is set (dofsynth.color.highlight_boost).
-  With `options.linear_light = false` (the naive baseline) the planes are sRGB-encoded before
-  the blur and the result is stored as it is.
+- `dof.N.png`: `unboost(render_planes(boost(planes), focus_N, max_coc_N, aperture))`: with
+  `options.highlight` set, each plane's colour is highlight-boosted (dofsynth.highlight) before
+  the blur and the result mapped back by the exact inverse; else the plain render.
+- `aif.png`: the same with no blur, `unboost(composite(boost(planes)))`, so a target equals it
+  wherever nothing that reaches a pixel is blurred;
+- `depth.exr`, `cover.png`: the disparity map and the two coverages (dofsynth.record).
+With `options.linear_light = false` (the naive baseline, no highlight handling) the planes are
+sRGB-encoded before the blur and the result is stored as it is.
 """
 from __future__ import annotations
 
@@ -16,8 +18,9 @@ from dataclasses import asdict, replace
 import numpy as np
 
 from dofsynth.assets import AssetLibrary
-from dofsynth.color import highlight_boost, linear_to_srgb
+from dofsynth.color import linear_to_srgb
 from dofsynth.compose import scene_layers
+from dofsynth.highlight import boost, unboost
 from dofsynth.io import encode_exr
 from dofsynth.record import (encode_alphas, encode_png8, encode_record, encode_srgb_png_planar,
                              encode_srgb_png_rows, sample_record)
@@ -29,14 +32,7 @@ def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
     """Render one scene to its tar members {suffix: bytes} (see the module docstring)."""
     layers = scene_layers(scene, library)
     planes = list(layers.planes)
-    # Encode the un-blurred members first and drop their arrays (peak memory at large sizes).
-    members: dict[str, bytes] = {
-        "aif.png": encode_srgb_png_rows(layers.aif_rows, *layers.disparity.shape),
-        "depth.exr": encode_exr(np.asarray(layers.disparity, dtype=np.float32)),
-        "cover.png": encode_alphas(planes[2].alpha, planes[1].alpha),
-    }
-    del layers
-    hl = scene.options.highlight
+    hl = asdict(scene.options.highlight) if scene.options.highlight is not None else None
     if hl is not None:  # the planes are this call's own fresh arrays: boost in place
         for i, p in enumerate(planes):
             rgb = p.rgb
@@ -45,13 +41,26 @@ def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
                 if y1 <= y0 or x1 <= x0:
                     continue
                 rgb = rgb[y0:y1, x0:x1]
-            highlight_boost(rgb, **asdict(hl), out=rgb)
+            boost(rgb, **hl, out=rgb)
+    def aif_rows(r0: int, r1: int) -> np.ndarray:  # the composite of the (boosted) planes, mapped back
+        rows = layers.aif_rows(r0, r1)
+        return rows if hl is None else unboost(rows, **hl, out=rows)
+
+    # Encode the un-blurred members first and drop their arrays (peak memory at large sizes).
+    members: dict[str, bytes] = {
+        "aif.png": encode_srgb_png_rows(aif_rows, *layers.disparity.shape),
+        "depth.exr": encode_exr(np.asarray(layers.disparity, dtype=np.float32)),
+        "cover.png": encode_alphas(planes[2].alpha, planes[1].alpha),
+    }
+    del layers, aif_rows
     linear_light = scene.options.linear_light
     if not linear_light:  # the naive baseline: blur sRGB-encoded values, store them as they are
         planes = [replace(p, rgb=linear_to_srgb(p.rgb)) for p in planes]
     for n, t in enumerate(scene.targets):
         if linear_light:  # planar (3, H, W): encoded in row blocks, no interleaved frame copy
             img = render_planes(planes, float(t.focus), float(t.max_coc), scene.aperture, planar=True)
+            if hl is not None:
+                unboost(img, **hl, out=img, axis=0)
             members[f"dof.{n}.png"] = encode_srgb_png_planar(img)
         else:
             img = render_planes(planes, float(t.focus), float(t.max_coc), scene.aperture)

@@ -246,8 +246,9 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int) 
     ar = recipe.render.aperture
     aperture = APERTURES[ar.kind].from_rules(ar, rng)
     hr = recipe.render.highlight
-    options = Options(highlight=Highlight(hr.threshold, hr.gain, hr.power) if hr.enabled else None,
-                      linear_light=recipe.render.linear_light)
+    linear = recipe.render.linear_light  # highlights are light: the naive (sRGB) baseline has none
+    options = Options(highlight=Highlight(hr.threshold, hr.gain, hr.power) if hr.enabled and linear else None,
+                      linear_light=linear)
 
     return Scene(
         key=sample_key(split, index), split=split, index=int(index), seed=seed, size=(H, W),

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from dofsynth.assets import build_library
-from dofsynth.color import highlight_boost, linear_to_srgb8
+from dofsynth.color import linear_to_srgb8
+from dofsynth.highlight import boost, unboost
 from dofsynth.image import to_uint8
-from dofsynth.compose import scene_layers
+from dofsynth.compose import SceneLayers, scene_layers
 from dofsynth.recipe import load_recipe
 from dofsynth.io import encode_exr, encode_png
 from dofsynth.render.planes import Plane
@@ -52,15 +53,15 @@ def test_pixels_are_what_the_format_says(setup):
     d = decode_sample(m)
     h, w = recipe.frame
     assert d["aif"].shape == (h, w, 3) and d["depth"].shape == (h, w) and d["cover"].shape == (h, w, 2)
-    assert np.array_equal(to_uint8(d["aif"]), linear_to_srgb8(layers.aif))  # not boosted
     assert d["depth"].dtype == np.float32 and np.array_equal(d["depth"], layers.disparity)
     assert np.array_equal(to_uint8(d["cover"]), to_uint8(layers.cover))
-    hl = scene.options.highlight
-    planes = [Plane(highlight_boost(p.rgb, hl.threshold, hl.gain, hl.power), p.alpha, p.disparity)
-              for p in layers.planes] if hl else layers.planes
+    hl = vars(scene.options.highlight)
+    planes = [Plane(boost(p.rgb, **hl), p.alpha, p.disparity) for p in layers.planes]
+    boosted = SceneLayers(planes, layers.disparity)
+    assert np.array_equal(to_uint8(d["aif"]), linear_to_srgb8(unboost(boosted.aif, **hl)))
     ap = aperture_from_dict(scene.aperture.to_dict())
     for i, t in enumerate(scene.targets):
-        want = linear_to_srgb8(render_planes(planes, t.focus, t.max_coc, ap))
+        want = linear_to_srgb8(unboost(render_planes(planes, t.focus, t.max_coc, ap), **hl))
         assert np.array_equal(to_uint8(d["dof"][i]), want)
 
 
@@ -83,15 +84,19 @@ def test_deterministic_and_rerenderable_from_json(setup):
     assert render_sample(from_json, library) == samples[2]
 
 
-def test_highlight_boost_changes_only_the_dof_targets(setup):
+def test_where_nothing_is_blurred_every_target_is_the_all_in_focus_image(setup):
+    """max_coc 0: the targets are the all-in-focus image byte for byte, highlights, hair-like
+    soft edges and ramps included; the boost changes only what is blurred."""
     recipe, library, scenes, samples = setup
-    scene = scenes[0]
-    plain = render_sample(replace(scene, options=replace(scene.options, highlight=None)), library)
-    assert plain["aif.png"] == samples[0]["aif.png"] and plain["depth.exr"] == samples[0]["depth.exr"]
-    # a white pixel is boosted, a dark one is not
-    rgb = np.array([[[1.0, 1.0, 1.0], [0.1, 0.1, 0.1]]], np.float32)
-    boosted = highlight_boost(rgb, threshold=0.9, gain=4.0, power=2.0)
-    assert np.allclose(boosted[0, 0], 5.0) and np.allclose(boosted[0, 1], 0.1)
+    for scene in scenes:
+        still = render_sample(replace(scene, targets=tuple(replace(t, max_coc=0.0) for t in scene.targets)), library)
+        assert all(still[f"dof.{i}.png"] == still["aif.png"] for i in range(len(scene.targets)))
+        # The boost undone: where no plane is partly transparent the all-in-focus image is the
+        # plain composite (to float rounding); at soft edges it is composited in boosted light.
+        plain = decode_sample(render_sample(replace(scene, options=replace(scene.options, highlight=None)), library))
+        d = decode_sample(samples[scenes.index(scene)])
+        solid = np.all((d["cover"] == 0) | (d["cover"] == 1), axis=2)
+        assert np.abs(d["aif"] - plain["aif"])[solid].max() <= 1.5 / 255
 
 
 def test_webdataset_reads_every_field(setup, tmp_path):

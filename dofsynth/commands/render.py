@@ -59,7 +59,7 @@ def register(subparsers) -> None:
                    help="disk (default), polygon:N or polygon:N:ROTATION_DEGREES (circumradius = CoC)")
     p.add_argument("--highlight", action="store_true",
                    help="boost near-white pixels to brighter-than-white before blurring, so highlights "
-                        "become bright bokeh discs (dofsynth.color.highlight_boost; not with --model)")
+                        "become bright bokeh discs, and map the result back (dofsynth.highlight; not with --model)")
     p.add_argument("--method", choices=("layered", "exact"), default="layered",
                    help="layered (fast, default) or exact (aperture sampling; slow, for small images)")
     p.add_argument("--model", metavar="RUN", default=None,
@@ -111,7 +111,7 @@ def _write(path: Path, rgb: np.ndarray) -> None:
 def run(args) -> int:
     import scipy.fft
 
-    from dofsynth.color import highlight_boost
+    from dofsynth.highlight import boost, unboost
     from dofsynth.optics.aperture import parse_aperture
     from dofsynth.render import Plane, render_planes
 
@@ -136,10 +136,12 @@ def run(args) -> int:
                               focus=focus, aperture=args.aperture_scale)
     else:
         if args.highlight:
-            rgb = highlight_boost(rgb)
+            rgb = boost(rgb)
         plane = Plane(rgb, np.ones(disparity.shape, np.float32), disparity)
         with scipy.fft.set_workers(os.cpu_count() or 1):
             result = render_planes([plane], focus, args.max_coc, aperture, method=args.method)
+        if args.highlight:
+            result = unboost(result, out=result)
     _write(out, np.asarray(result, dtype=np.float32))
     how = (f"network {args.model}, aperture scale {args.aperture_scale}" if args.model is not None
            else f"max CoC {args.max_coc} px, aperture {args.aperture}")

@@ -1,0 +1,123 @@
+"""The highlight boost: near-white pixels turned into brighter-than-white light before blurring,
+and its exact inverse after it.
+
+A photo clips its highlights, so a blurred lamp or sun glint comes out dim and grey. `boost`
+multiplies every channel of a linear pixel by the same factor
+
+    B(x) = x * g(m),    m = max(R, G, B),
+    g(m) = 1 + gain * w(s),    s = clip((m - T) / (1 - T), 0, 1),    w(s) = s ** power,
+
+where T is the linear value of the sRGB level `threshold`: pixels darker than it are
+unchanged and a white one becomes `1 + gain` times brighter, so a small highlight, spread by
+the blur, still saturates into a visible disc of the aperture's shape. w is the piecewise-linear
+interpolant of s ** power on KNOTS segments (knots in exact decimal arithmetic), so every
+per-pixel operation is +, -, *, / or sqrt: correctly rounded, the same bytes on every CPU.
+
+`unboost` is the exact inverse, applied to the blurred composite: m * g(m) is strictly
+increasing, so from y = B(x) the original max m is the root of m * g(m) = max(y) (a quadratic
+on each segment, solved in closed form) and x = y * m / max(y). Because a sample's targets
+are `unboost(render(boost(planes)))` and its all-in-focus image `unboost(composite(boost(
+planes)))`, a target equals the all-in-focus image wherever nothing reaching a pixel is
+blurred, highlights included, and a pixel's hue (the ratios of its channels) is what it was.
+"""
+from __future__ import annotations
+
+from decimal import Decimal, localcontext
+from functools import lru_cache
+
+import numpy as np
+
+from dofsynth.color import srgb_decode_exact
+
+KNOTS = 256
+_ROWS = 128  # rows per block: small temporaries at any size
+
+
+def _decimal_pow(base: float, exponent: float) -> float:
+    """base ** exponent, rounded once from 40-digit decimal arithmetic (platform independent)."""
+    if base == 0.0:
+        return 0.0
+    with localcontext() as ctx:
+        ctx.prec = 40
+        return float(Decimal(base) ** Decimal(exponent))
+
+
+@lru_cache(maxsize=64)
+def _tables(threshold: float, gain: float, power: float):
+    """T, the segment width and, per knot k: m_k, g_k, the slope of g and h_k = m_k * g_k."""
+    if not 0.0 <= threshold < 1.0:
+        raise ValueError(f"highlight threshold must be in [0, 1), got {threshold}")
+    if gain < 0 or power <= 0:
+        raise ValueError(f"highlight gain must be >= 0 and power > 0, got {gain}, {power}")
+    t = srgb_decode_exact(float(threshold))
+    width = (1.0 - t) / KNOTS
+    g = np.array([1.0 + gain * _decimal_pow(k / KNOTS, power) for k in range(KNOTS + 1)])
+    m = t + width * np.arange(KNOTS + 1)
+    m[-1] = 1.0
+    return t, width, m, g, np.diff(g), m * g
+
+
+def _channel_max(x: np.ndarray, axis: int) -> np.ndarray:
+    """max over the channel axis with two np.maximum (numpy's reduce over a short axis is slow)."""
+    chans = np.moveaxis(x, axis, 0)
+    m = chans[0].copy()
+    for c in chans[1:]:
+        np.maximum(m, c, out=m)
+    return m
+
+
+def _factor(m: np.ndarray, tables) -> np.ndarray:
+    """g(m) (float64) for linear maxima above T."""
+    t, width, _, g, dg, _ = tables
+    s = np.clip((m - t) / (1.0 - t), 0.0, 1.0) * KNOTS
+    k = np.minimum(np.floor(s), KNOTS - 1).astype(np.intp)
+    return g[k] + dg[k] * (s - k)
+
+
+def _root(mb: np.ndarray, tables) -> np.ndarray:
+    """m with m * g(m) = mb, for boosted maxima mb above T (float64)."""
+    t, width, m, g, dg, h = tables
+    out = np.where(mb <= t, mb, mb / g[-1])  # unchanged below T; beyond white g is 1 + gain
+    inside = (mb > t) & (mb < h[-1])
+    y = mb[inside]
+    k = np.clip(np.searchsorted(h, y, side="right") - 1, 0, KNOTS - 1)
+    a, b = width * dg[k], m[k] * dg[k] + width * g[k]  # h(m_k + width f) = h_k + b f + a f^2
+    r = np.maximum(y - h[k], 0.0)
+    f = 2.0 * r / (b + np.sqrt(b * b + 4.0 * a * r))
+    out[inside] = m[k] + width * np.minimum(f, 1.0)
+    return out
+
+
+def _apply(x, threshold, gain, power, out, axis, invert: bool):
+    tables = _tables(float(threshold), float(gain), float(power))
+    x = np.asarray(x, dtype=np.float32)
+    if out is None:
+        out = x.copy()
+    elif out is not x:
+        out[...] = x
+    work = np.moveaxis(out, axis, -1)  # (..., C), a view
+    lead = work.reshape(-1, work.shape[-1]) if work.ndim < 2 else None
+    blocks = [lead] if lead is not None else [work[r:r + _ROWS] for r in range(0, work.shape[0], _ROWS)]
+    lo = tables[0] * (1.0 - 1e-6)
+    for block in blocks:
+        mx = _channel_max(block, -1)
+        idx = np.nonzero(mx > lo)  # index tuples also write through a non-contiguous `out`
+        if not idx[0].size:
+            continue
+        mv = mx[idx].astype(np.float64)
+        scale = (_root(mv, tables) / mv) if invert else _factor(mv, tables)
+        block[idx] = (block[idx] * scale[:, None]).astype(np.float32)
+    return out
+
+
+def boost(x: np.ndarray, threshold: float = 0.9, gain: float = 4.0, power: float = 2.0, *,
+          out: np.ndarray | None = None, axis: int = -1) -> np.ndarray:
+    """B(x) of linear light (float32, channels along `axis`); `out=x` works in place, also on
+    a view. Only pixels whose max exceeds T are touched."""
+    return _apply(x, threshold, gain, power, out, axis, invert=False)
+
+
+def unboost(y: np.ndarray, threshold: float = 0.9, gain: float = 4.0, power: float = 2.0, *,
+            out: np.ndarray | None = None, axis: int = -1) -> np.ndarray:
+    """B^-1(y): the exact inverse of `boost` with the same parameters (float32 rounding aside)."""
+    return _apply(y, threshold, gain, power, out, axis, invert=True)
