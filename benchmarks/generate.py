@@ -56,6 +56,8 @@ def bench_recipe(base_text: str, size: int, samples: int, shard_size: int = 1):
     t = re.sub(r"(?m)^samples = \{[^}]*\}", f"samples = {{ train = {samples}, test = 0 }}", t)
     t = re.sub(r'(?m)^(backgrounds|foregrounds) = "[^"]*"', r'\1 = "builtin"', t)
     t = re.sub(r"(?m)^manifest = .*$", "", t)
+    # the built-in assets are small photos: magnified at large sizes (a benchmark, not a data set)
+    t = re.sub(r"(?m)^max_upscale = .*$", "", t).replace("[assets]\n", "[assets]\nmax_upscale = 64.0\n", 1)
 
     def scale(m):
         lo, hi = (float(x) * size / 1024 for x in m.group(1, 2))

@@ -94,12 +94,11 @@ STAGES = (("scene", "dofsynth.generate.worker", "sample_scene"), ("compose", "do
 def generation_stages(sizes, samples: int) -> None:
     """Per-stage wall/CPU time of dofsynth.generate.worker.render_one plus the tar write."""
     import importlib
-    import re
     import tempfile
     from pathlib import Path
 
     from dofsynth.generate.worker import library_for, render_one
-    from dofsynth.recipe import recipe_from_text
+    from generate import bench_recipe  # this folder's generation benchmark: the same recipe
     from dofsynth.shards import write_shard
 
     acc: dict[str, list[float]] = {}
@@ -129,13 +128,7 @@ def generation_stages(sizes, samples: int) -> None:
 
     print(f"dofsynth from {Path(dofsynth.__file__).parent}; load average {os.getloadavg()[0]:.2f}")
     for size in sizes:
-        t = re.sub(r"(?m)^size = \d+", f"size = {size}", base)
-        t = re.sub(r"(?m)^samples = \{[^}]*\}", f"samples = {{ train = {samples + 1}, test = 0 }}", t)
-        t = re.sub(r'(?m)^(backgrounds|foregrounds) = "[^"]*"', r'\1 = "builtin"', t)
-        t = re.sub(r"(?m)^manifest = .*$", "", t)
-        t = re.sub(r"(?m)^max_coc = \[([\d.]+), ([\d.]+)\]",
-                   lambda m: f"max_coc = [{float(m.group(1)) * size / 1024}, {float(m.group(2)) * size / 1024}]", t)
-        recipe = recipe_from_text(t, f"bench-{size}.toml", root / "recipes")
+        recipe = bench_recipe(base, size, samples + 1)
         library = library_for(recipe)
         render_one(recipe, library, "train", samples)  # warm-up (kernels, FFT plans, memory)
         rows = []

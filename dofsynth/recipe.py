@@ -40,6 +40,11 @@ class AssetSources:
     on_bad_asset: str = key("skip", choices=("skip", "stop"))
     test_share: float = key(0.1, lo=0.0, hi=0.9)    # fraction of assets (per kind) in the test split
     verify: str = key("decode", choices=("decode", "header"))  # decode every file at scan, or lazily
+    fg_dir: str = key("fg")                          # the paired layout: photos in foregrounds/<fg_dir> ...
+    alpha_dir: str = key("alpha")                    # ... their mattes in foregrounds/<alpha_dir>
+    estimate_foreground: bool = key(True)            # paired layout: estimate the colour where 0 < alpha < 1
+    max_upscale: float = key(1.0, lo=1.0, hi=64.0)   # most magnification of a background crop or a cutout
+    transparent_background: str = key("bad", choices=("bad", "black", "grey", "white"))  # or flatten onto
 
 
 @dataclass_kw
@@ -58,6 +63,7 @@ class ForegroundRules:
     min_gap: float = key(0.05, lo=0.0, hi=0.5, lo_open=True)  # f0 >= f1 + gap, f1 >= b_max + gap
     scale: Range = key((0.35, 0.8), lo=0.01, hi=1.0)  # object long side / frame short side
     min_in_frame: float = key(0.6, lo=0.05, hi=1.0)  # least share of each object's bbox in the frame
+    min_visible: float = key(0.3, lo=0.0, hi=1.0)    # least share of each object's alpha seen (frame, occlusion)
     flip_share: float = key(0.5, lo=0.0, hi=1.0)     # probability of a horizontal flip (each object, background)
 
 
@@ -71,6 +77,7 @@ class SceneRules:
 class FocusRules:
     targets_per_scene: int = key(1, lo=1, hi=64)
     plane_share: float = key(0.5, lo=0.0, hi=1.0)    # probability a target focuses exactly on a plane
+    min_separation: float = key(0.05, lo=0.0, hi=0.5)  # least disparity between the focus of two targets
     max_coc: Range = key(lo=0.0, hi=512.0)           # max circle-of-confusion radius, px at the output size
 
 
@@ -129,6 +136,11 @@ def _check(r: Recipe, file: str) -> None:
     """The rules between keys: at least one sample, a ramp that falls, planes in front."""
     if r.samples.train + r.samples.test == 0:
         raise ConfigError(f"{file}: samples: expected at least one sample in train or test, got 0")
+    fo = r.focus
+    if (fo.targets_per_scene - 1) * fo.min_separation > 0.5:
+        raise error(file, "focus.min_separation", f"at most {0.5 / max(fo.targets_per_scene - 1, 1):.3g} for "
+                    f"{fo.targets_per_scene} targets per scene (they must fit into half the disparity range)",
+                    fo.min_separation)
     if r.focus.max_coc[1] > MAX_COC_PER_SIDE * r.size:
         raise error(file, "focus.max_coc", f"a high end <= {MAX_COC_PER_SIDE * r.size} ({MAX_COC_PER_SIDE} x size)",
                     list(r.focus.max_coc))

@@ -13,19 +13,25 @@ f1 >= b_max + min_gap (b_max = b0 for a ramp, 0 when flat), so it is in front of
 background everywhere; the front plane f0 >= f1 + min_gap.
 
 Placement: an object's placed part is its asset's `extent` (the alpha's bounding box); it is
-resized by `scale` (output px per source px) to `placed_size(...)` and its top-left corner is
-put at integer (x, y) of the output frame (may be negative), keeping at least `min_in_frame`
-of its area inside the frame.
+resized by `scale` (output px per source px, at most `assets.max_upscale`) to `placed_size(...)`
+and its top-left corner is put at integer (x, y) of the output frame (may be negative), keeping
+at least `min_in_frame` of its area inside the frame. A matte cut by its photo's border (a
+portrait cut at the chest: `Asset.cut`) is placed with each cut side on or beyond the matching
+frame edge (`ObjectParams.anchored`, after the flip); an asset no placement can do that for is
+redrawn and listed in `rejected`. Each object keeps at least `min_visible` of its alpha in
+view, the middle one behind the front one (`visible`, estimated on 128 px thumbnails). Focus
+targets of a scene lie at least `focus.min_separation` apart in disparity.
 """
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from dofsynth.assets import Asset, AssetLibrary
+from dofsynth.assets.fit import largest_crop, scale_range
 from dofsynth.optics.aperture import APERTURES, Aperture, aperture_from_dict
 from dofsynth.recipe import Recipe
 from dofsynth.rng import draw_uniform, sample_key, sample_rng, sample_seed
@@ -38,6 +44,7 @@ class AssetRef:
     id: str
     path: str      # relative to the recipe's folder (portable), or "builtin:..."
     sha256: str
+    colour: str = "file"  # "file": the file's colour as it is; "estimated:<estimator>" (dofsynth.assets.foreground)
 
 
 @dataclass(frozen=True)
@@ -57,6 +64,9 @@ class ObjectParams:
     x: int                          # top-left of the placed extent, output px (may be < 0)
     y: int
     flip: bool                      # horizontal flip of the extent before placing
+    anchored: tuple[str, ...] = ()  # frame edges the object is cut at (its matte's cut sides, flipped)
+    visible: float = 1.0            # share of its alpha seen in the frame, behind what is in front
+    rejected: tuple[str, ...] = ()  # assets drawn for this object first, which no placement could fit
 
 
 @dataclass(frozen=True)
@@ -100,7 +110,7 @@ class Scene:
             "size": list(self.size),
             "assets": {k: asdict(self.assets[k]) for k in ("background", "front", "middle")},
             "background": {**asdict(self.background), "crop": list(self.background.crop)},
-            "front": asdict(self.front), "middle": asdict(self.middle),
+            "front": _object_dict(self.front), "middle": _object_dict(self.middle),
             "targets": [asdict(t) for t in self.targets],
             "aperture": self.aperture.to_dict(),
             "options": {"highlight": asdict(self.options.highlight) if self.options.highlight else None,
@@ -116,12 +126,21 @@ class Scene:
             size=(int(d["size"][0]), int(d["size"][1])),
             assets={k: AssetRef(**d["assets"][k]) for k in ("background", "front", "middle")},
             background=BackgroundParams(**{**d["background"], "crop": tuple(int(v) for v in d["background"]["crop"])}),
-            front=ObjectParams(**d["front"]), middle=ObjectParams(**d["middle"]),
+            front=_object(d["front"]), middle=_object(d["middle"]),
             targets=tuple(Target(**t) for t in d["targets"]),
             aperture=aperture_from_dict(d["aperture"]),
             options=Options(highlight=Highlight(**hl) if hl else None,
                             linear_light=bool(d["options"].get("linear_light", True))),
         )
+
+
+def _object_dict(o: ObjectParams) -> dict[str, Any]:
+    d = asdict(o)
+    return {**d, "anchored": list(o.anchored), "rejected": list(o.rejected)}
+
+
+def _object(d: dict[str, Any]) -> ObjectParams:
+    return ObjectParams(**{**d, "anchored": tuple(d.get("anchored", ())), "rejected": tuple(d.get("rejected", ()))})
 
 
 def placed_size(scale: float, extent_w: int, extent_h: int) -> tuple[int, int]:
@@ -155,33 +174,131 @@ def background_disparity(mode: str, b0: float, b1: float, direction: str | None,
     raise ValueError(f"ramp direction must be 'horizontal' or 'vertical', got {direction!r}")
 
 
-def _ref(asset: Asset, recipe: Recipe) -> AssetRef:
+def _ref(asset: Asset, recipe: Recipe, library: AssetLibrary) -> AssetRef:
     path = asset.path
     if not path.startswith("builtin:") and recipe.base_dir:
         path = os.path.relpath(path, recipe.base_dir).replace(os.sep, "/")
-    return AssetRef(id=asset.id, path=path, sha256=asset.sha256)
+    return AssetRef(id=asset.id, path=path, sha256=asset.sha256, colour=library.colour(asset))
 
 
-def _place(rng: np.random.Generator, asset: Asset, disparity: float, recipe: Recipe) -> ObjectParams:
+_SWAP = {"left": "right", "right": "left", "top": "top", "bottom": "bottom"}
+VISIBLE_SIDE = 128  # occlusion is estimated on the frame reduced to this long side (alpha thumbnails)
+_OBJECT_TRIES = 8   # assets drawn per object before the last one is taken as it is
+_VISIBLE_TRIES = 32  # object draws for both to stay visible (a new middle object every 8)
+
+
+def _axis(size: int, frame: int, m: float, low_cut: bool, high_cut: bool) -> tuple[int, int]:
+    """Range of an object's top-left coordinate along one axis: at least m of it inside, its
+    cut sides on or beyond the frame's edges."""
+    lo, hi = -int((1 - m) * size), frame - int(np.ceil(m * size))
+    if low_cut:
+        hi = min(hi, 0)
+    if high_cut:
+        lo = max(lo, frame - size)
+    return lo, hi
+
+
+def _place(rng: np.random.Generator, asset: Asset, disparity: float, recipe: Recipe) -> ObjectParams | None:
+    """Draw flip, scale and position of one object; None when no placement can keep its cut
+    sides on the frame's edges at the recipe's scales."""
     H, W = recipe.frame
     rules = recipe.scene.foreground
+    flip = bool(rng.random() < rules.flip_share)
+    anchored = tuple(sorted(_SWAP[c] if flip else c for c in asset.cut))
+    lo, hi = scale_range(asset, recipe, anchored)
+    if lo > hi:
+        return None
+    scale = draw_uniform(rng, lo, hi)
     _, _, ew, eh = asset.extent
-    long_px = float(rng.uniform(*rules.scale)) * min(H, W)
-    scale = long_px / max(ew, eh)
     w, h = placed_size(scale, ew, eh)
     m = rules.min_in_frame
-    x_lo, x_hi = -int((1 - m) * w), W - int(np.ceil(m * w))
-    y_lo, y_hi = -int((1 - m) * h), H - int(np.ceil(m * h))
+    (x_lo, x_hi), (y_lo, y_hi) = (_axis(w, W, m, "left" in anchored, "right" in anchored),
+                                  _axis(h, H, m, "top" in anchored, "bottom" in anchored))
+    if x_lo > x_hi or y_lo > y_hi:
+        return None
     for _ in range(_PLACE_TRIES):
-        x = int(rng.integers(min(x_lo, x_hi), max(x_lo, x_hi) + 1))
-        y = int(rng.integers(min(y_lo, y_hi), max(y_lo, y_hi) + 1))
+        x, y = int(rng.integers(x_lo, x_hi + 1)), int(rng.integers(y_lo, y_hi + 1))
         if in_frame_share(x, y, w, h, W, H) >= m:
-            break
-    else:  # fall back to the nearest position fully inside (or centred if larger than the frame)
-        x = (W - w) // 2 if w >= W else min(max(x, 0), W - w)
-        y = (H - h) // 2 if h >= H else min(max(y, 0), H - h)
-    flip = bool(rng.random() < rules.flip_share)
-    return ObjectParams(disparity=float(disparity), scale=float(scale), x=x, y=y, flip=flip)
+            return ObjectParams(disparity=float(disparity), scale=float(scale), x=x, y=y, flip=flip, anchored=anchored)
+    return None
+
+
+def _object_draw(rng, pool: list[Asset], disparity: float, recipe: Recipe, exclude=()):
+    """(asset, params) of an object: assets drawn from `pool` (not `exclude`) until one can be
+    placed; those that could not are listed in `params.rejected`."""
+    rejected: list[str] = []
+    for attempt in range(_OBJECT_TRIES):
+        candidates = [a for a in pool if a.id not in exclude and a.id not in rejected] or pool
+        asset = candidates[int(rng.integers(len(candidates)))]
+        params = _place(rng, asset, disparity, recipe)
+        if params is not None:
+            return asset, replace(params, rejected=tuple(rejected))
+        rejected.append(asset.id)
+    raise ValueError(f"no foreground of the split could be placed with its cut sides on the frame's edges after "
+                     f"{_OBJECT_TRIES} draws ({', '.join(rejected)}); widen scene.foreground.scale or raise "
+                     "assets.max_upscale")
+
+
+def _alpha_on_frame(asset: Asset, p: ObjectParams, frame: tuple[int, int]) -> tuple[np.ndarray, int]:
+    """(uint8 alpha on the frame reduced to VISIBLE_SIDE, the object's whole alpha mass at that
+    scale), from the asset's thumbnail (its bbox when it has none): integer arithmetic only."""
+    H, W = frame
+    q = VISIBLE_SIDE / max(H, W)
+    FH, FW = max(1, round(H * q)), max(1, round(W * q))
+    _, _, ew, eh = asset.extent
+    w, h = placed_size(p.scale, ew, eh)
+    tw, th = max(1, round(w * q)), max(1, round(h * q))
+    thumb = asset.thumb if asset.thumb is not None else np.full((1, 1), 255, np.uint8)
+    if p.flip:
+        thumb = thumb[:, ::-1]
+    small = thumb[(np.arange(th) * thumb.shape[0]) // th][:, (np.arange(tw) * thumb.shape[1]) // tw]
+    out = np.zeros((FH, FW), np.uint8)
+    x0, y0 = round(p.x * q), round(p.y * q)
+    cx0, cy0, cx1, cy1 = max(x0, 0), max(y0, 0), min(x0 + tw, FW), min(y0 + th, FH)
+    if cx1 > cx0 and cy1 > cy0:
+        out[cy0:cy1, cx0:cx1] = small[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
+    return out, int(small.astype(np.int64).sum())
+
+
+def visible_shares(middle: tuple[Asset, ObjectParams], front: tuple[Asset, ObjectParams],
+                   frame: tuple[int, int]) -> tuple[float, float]:
+    """(middle, front): the share of each object's alpha seen in the frame, the middle one
+    behind the front one (on the frame reduced to VISIBLE_SIDE px)."""
+    am, mass_m = _alpha_on_frame(*middle, frame)
+    af, mass_f = _alpha_on_frame(*front, frame)
+    seen_m = int((am.astype(np.int64) * (255 - af.astype(np.int64))).sum())
+    return seen_m / max(255 * mass_m, 1), int(af.astype(np.int64).sum()) / max(mass_f, 1)
+
+
+_FOCUS_TRIES = 32
+
+
+def _draw_focus(rng, plane_share: float, ramp: tuple[float, float], f1: float, f0: float,
+                taken: list[float], sep: float) -> float:
+    """A target's focus, at least `sep` from every focus in `taken`: exactly on a plane (a point
+    of the background ramp) or uniform in [0, 1]; after _FOCUS_TRIES draws too close, uniform
+    over what [0, 1] has left (never empty: recipe checks (targets - 1) * sep <= 0.5)."""
+    for _ in range(_FOCUS_TRIES):
+        if rng.random() < plane_share:
+            plane = int(rng.integers(3))  # 0 background (a point of the ramp), 1 middle, 2 front
+            focus = draw_uniform(rng, *ramp) if plane == 0 else (f1 if plane == 1 else f0)
+        else:
+            focus = float(rng.uniform(0.0, 1.0))
+        if all(abs(focus - t) >= sep for t in taken):
+            return float(focus)
+    free, start = [], 0.0  # [0, 1] less (t - sep, t + sep) of every taken focus
+    for t in sorted(taken):
+        if t - sep > start:
+            free.append((start, t - sep))
+        start = max(start, t + sep)
+    if start < 1.0:
+        free.append((start, 1.0))
+    u = float(rng.uniform(0.0, sum(b - a for a, b in free)))
+    for a, b in free:
+        if u <= b - a:
+            return min(a + u, b)
+        u -= b - a
+    return free[-1][1] if free else 1.0
 
 
 def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int) -> Scene:
@@ -196,12 +313,10 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int) 
     # 1. background asset, crop and flip
     bg = bgs[int(rng.integers(len(bgs)))]
     sw, sh = bg.size
-    if sw * H > sh * W:   # source wider than the frame aspect
-        cw_max, ch_max = sh * W / H, float(sh)
-    else:
-        cw_max, ch_max = float(sw), sw * H / W
+    cw_max, ch_max = largest_crop(bg.size, (H, W))
     br, fr = recipe.scene.background, recipe.scene.foreground
-    c = float(rng.uniform(*br.crop))
+    need = W / (recipe.assets.max_upscale * cw_max)  # the least crop magnified no more than max_upscale
+    c = float(rng.uniform(max(br.crop[0], need), max(br.crop[1], need)))
     cw, ch = max(1, min(sw, round(cw_max * c))), max(1, min(sh, round(ch_max * c)))
     cx, cy = int(rng.integers(0, sw - cw + 1)), int(rng.integers(0, sh - ch + 1))
     bflip = bool(rng.random() < fr.flip_share)
@@ -223,24 +338,31 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int) 
     f1 = draw_uniform(rng, max(fr.f1[0], b0 + fr.min_gap), fr.f1[1])
     f0 = draw_uniform(rng, max(fr.f0[0], f1 + fr.min_gap), fr.f0[1])
 
-    # 4. foreground assets (distinct) and placement
-    i = int(rng.integers(len(fgs)))
-    j = int(rng.integers(len(fgs) - 1))
-    j = j + 1 if j >= i else j
-    front_asset, middle_asset = fgs[i], fgs[j]
-    middle = _place(rng, middle_asset, f1, recipe)
-    front = _place(rng, front_asset, f0, recipe)
+    # 4. foreground assets (distinct) and placement: cut sides on the frame's edges, each object
+    #    at least min_visible seen (front draws redrawn, a new middle object every 8 of them)
+    best = None
+    for attempt in range(_VISIBLE_TRIES):
+        if attempt % 8 == 0:
+            middle_asset, middle = _object_draw(rng, fgs, f1, recipe)
+        front_asset, front = _object_draw(rng, fgs, f0, recipe, exclude={middle_asset.id})
+        seen = visible_shares((middle_asset, middle), (front_asset, front), (H, W))
+        if best is None or min(seen) > min(best[-1]):
+            best = (middle_asset, middle, front_asset, front, seen)
+        if min(seen) >= fr.min_visible:
+            break
+    middle_asset, middle, front_asset, front, (seen_m, seen_f) = best
+    if min(seen_m, seen_f) < fr.min_visible:
+        raise ValueError(f"{sample_key(split, index)}: no placement in {_VISIBLE_TRIES} draws shows both objects "
+                         f"at least scene.foreground.min_visible = {fr.min_visible:g} (best: middle {seen_m:.2f}, "
+                         f"front {seen_f:.2f}); lower it, or min_in_frame, or the scale range")
+    middle, front = replace(middle, visible=round(seen_m, 4)), replace(front, visible=round(seen_f, 4))
 
-    # 5. focus targets
+    # 5. focus targets, at least min_separation apart in disparity
     fo = recipe.focus
-    targets = []
+    targets: list[Target] = []
     for _ in range(fo.targets_per_scene):
-        if rng.random() < fo.plane_share:
-            plane = int(rng.integers(3))  # 0 background (a point of the ramp), 1 middle, 2 front
-            focus = draw_uniform(rng, b1, b0) if plane == 0 else (f1 if plane == 1 else f0)
-        else:
-            focus = float(rng.uniform(0.0, 1.0))
-        targets.append(Target(focus=float(focus), max_coc=draw_uniform(rng, *fo.max_coc)))
+        focus = _draw_focus(rng, fo.plane_share, (b1, b0), f1, f0, [t.focus for t in targets], fo.min_separation)
+        targets.append(Target(focus=focus, max_coc=draw_uniform(rng, *fo.max_coc)))
 
     # 6. aperture and options
     ar = recipe.render.aperture
@@ -252,8 +374,8 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int) 
 
     return Scene(
         key=sample_key(split, index), split=split, index=int(index), seed=seed, size=(H, W),
-        assets={"background": _ref(bg, recipe), "front": _ref(front_asset, recipe),
-                "middle": _ref(middle_asset, recipe)},
+        assets={"background": _ref(bg, recipe, library), "front": _ref(front_asset, recipe, library),
+                "middle": _ref(middle_asset, recipe, library)},
         background=background, front=front, middle=middle, targets=tuple(targets),
         aperture=aperture, options=options,
     )

@@ -15,6 +15,16 @@ import pytest
 # `dofsynth generate --workers 1` tunes malloc for the process it runs in (generate.worker.setup_process):
 # not for the test processes, which call the CLI in-process and live on (nor their workers).
 os.environ.setdefault("DOFSYNTH_WORKER_MALLOC", "default")
+# estimated foregrounds are cached in a folder of this test session, never in the user's cache
+# (set before any test, so that the processes the tests start inherit it too)
+if "DOFSYNTH_TEST_CACHE" not in os.environ:
+    import atexit
+    import shutil
+    import tempfile
+
+    os.environ["DOFSYNTH_TEST_CACHE"] = tempfile.mkdtemp(prefix="dofsynth-test-cache-")
+    atexit.register(shutil.rmtree, os.environ["DOFSYNTH_TEST_CACHE"], True)  # by the process that made it
+os.environ["DOFSYNTH_CACHE"] = os.environ["DOFSYNTH_TEST_CACHE"]
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_ASSETS = Path(__file__).resolve().parents[2] / "shared" / "assets"

@@ -158,12 +158,14 @@ def _bad_cases(tmp_path, tiny_fg_pairs, tiny_bg_dir):
     write_png(tiny_fg_pairs / "fg" / "empty.png", noise_rgb(80, 96, 4))
     write_png(tiny_fg_pairs / "alpha" / "empty.png", np.zeros((80, 96), np.uint8))
     write_png(tiny_fg_pairs / "fg" / "nomatte.png", noise_rgb(80, 96, 5))
+    write_png(tiny_bg_dir / "holes.png", np.dstack([noise_rgb(80, 96, 6), blob_alpha(80, 96, 6)]))
     return {
         tiny_bg_dir / "truncated.png": "not a readable image",
         tiny_bg_dir / "tiny.png": "tiny image",
         tiny_fg_pairs / "fg" / "wrongsize.png": "alpha is 96x60",
         tiny_fg_pairs / "fg" / "empty.png": "empty alpha",
         tiny_fg_pairs / "fg" / "nomatte.png": "without alpha",
+        tiny_bg_dir / "holes.png": "a background with transparent pixels",
     }
 
 
@@ -180,7 +182,7 @@ def test_bad_assets_are_skipped_with_their_names(write_recipe, tmp_path, tiny_fg
     assert len(lib.backgrounds) == 5
 
 
-@pytest.mark.parametrize("which", range(5))
+@pytest.mark.parametrize("which", range(6))
 def test_bad_assets_stop_with_their_names(which, write_recipe, tmp_path, tiny_fg_pairs, tiny_bg_dir):
     cases = list(_bad_cases(tmp_path, tiny_fg_pairs, tiny_bg_dir).items())
     for i, (path, _) in enumerate(cases):  # keep only one bad file
@@ -191,6 +193,44 @@ def test_bad_assets_stop_with_their_names(which, write_recipe, tmp_path, tiny_fg
         build_library(load_recipe(write_recipe(backgrounds=tiny_bg_dir, foregrounds=tiny_fg_pairs,
                                                on_bad_asset="stop")))
     assert str(path) in str(exc.value) and why in str(exc.value)
+
+
+@pytest.mark.parametrize("onto, level", [("black", 0.0), ("grey", 0.21404114), ("white", 1.0)])
+def test_a_transparent_background_is_flattened_as_the_recipe_says(onto, level, write_recipe, tiny_bg_dir, tmp_path):
+    rgb, a = noise_rgb(80, 96, 6), blob_alpha(80, 96, 6)
+    write_png(tiny_bg_dir / "holes.png", np.dstack([rgb, a]))
+    write_png(tiny_bg_dir / "opaque.png", np.dstack([rgb, np.full_like(a, 255)]))  # alpha 1 everywhere: fine
+    for verify in ("decode", "header"):
+        recipe = load_recipe(write_recipe(backgrounds=tiny_bg_dir, on_bad_asset="stop", verify=verify,
+                                          replace={'test_share = 0.25': f'test_share = 0.25\ntransparent_background = "{onto}"'}))
+        lib = build_library(recipe)
+        flat = lib.load_background(lib["bg/holes"])
+        clear, solid = a == 0, a == 255
+        assert np.allclose(flat[clear], level, atol=1e-6)
+        assert np.array_equal(flat[solid], lib.load_background(lib["bg/opaque"])[solid])
+        half = (a > 100) & (a < 150)
+        assert half.any() and not np.allclose(flat[half], level)
+
+
+def test_header_mode_refuses_a_transparent_background_when_it_is_loaded(write_recipe, tiny_bg_dir):
+    write_png(tiny_bg_dir / "holes.png", np.dstack([noise_rgb(80, 96, 6), blob_alpha(80, 96, 6)]))
+    lib = build_library(load_recipe(write_recipe(backgrounds=tiny_bg_dir, verify="header")))
+    with pytest.raises(AssetError, match=r"holes\.png: a background with transparent pixels .*assets.transparent_background"):
+        lib.load_background(lib["bg/holes"])
+
+
+@pytest.mark.parametrize("fg_dir, alpha_dir", [("FG", "GT"), ("original", "mask"), ("blurred_image", "mask")])
+def test_the_paired_layout_takes_its_folder_names_from_the_recipe(fg_dir, alpha_dir, write_recipe, tiny_fg_pairs):
+    (tiny_fg_pairs / "fg").rename(tiny_fg_pairs / fg_dir)
+    (tiny_fg_pairs / "alpha").rename(tiny_fg_pairs / alpha_dir)
+    names = f'test_share = 0.25\nfg_dir = "{fg_dir}"\nalpha_dir = "{alpha_dir}"'
+    lib = build_library(load_recipe(write_recipe(foregrounds=tiny_fg_pairs, on_bad_asset="stop",
+                                                 replace={"test_share = 0.25": names})))
+    assert [a.id for a in lib.foregrounds] == ["fg/o0", "fg/o1", "fg/o2", "fg/o3"]
+    assert all(f"/{alpha_dir}/" in a.alpha_path for a in lib.foregrounds)
+    # with the default names the folder is not a paired layout: its files are taken as RGBA cutouts
+    with pytest.raises(AssetError, match="foreground without alpha"):
+        build_library(load_recipe(write_recipe(foregrounds=tiny_fg_pairs, on_bad_asset="stop", name="plain.toml")))
 
 
 def test_rgb_file_in_a_cutout_folder_is_a_foreground_without_alpha(write_recipe, tiny_cutouts, tiny_bg_dir):

@@ -15,7 +15,7 @@ from dofsynth.compose import SceneLayers, scene_layers
 from dofsynth.recipe import load_recipe
 from dofsynth.io import encode_exr, encode_png
 from dofsynth.render.planes import Plane
-from dofsynth.record import (RENDERER_ID, SampleDecodeError, decode_sample, encode_cover, encode_png8,
+from dofsynth.record import (RENDERER_ID, SCHEMA_VERSION, SampleDecodeError, decode_sample, encode_cover, encode_png8,
                              encode_record, encode_srgb_png, encode_srgb_png_planar)
 from dofsynth.sample import render_sample
 from dofsynth.render import render_planes
@@ -40,7 +40,7 @@ def test_members_and_record(setup):
         n = len(scene.targets)
         assert list(m) == ["aif.png", "depth.exr", "cover.png"] + [f"dof.{i}.png" for i in range(n)] + ["json"]
         rec = json.loads(m["json"])
-        assert rec["schema_version"] == 1 and rec["renderer"] == RENDERER_ID and rec["dofsynth_version"] == "0.1.0"
+        assert rec["schema_version"] == SCHEMA_VERSION == 2 and rec["renderer"] == RENDERER_ID and rec["dofsynth_version"] == "0.1.0"
         assert rec["key"] == scene.key and list(rec) == sorted(rec)
         assert {k: v for k, v in rec.items() if k not in ("schema_version", "renderer", "dofsynth_version")} == \
             json.loads(json.dumps(scene.to_dict()))

@@ -35,8 +35,17 @@ def test_dict_round_trip_is_exact_through_json(many):
         d = s.to_dict()
         back = Scene.from_dict(json.loads(json.dumps(d, sort_keys=True)))
         assert back == s and back.to_dict() == d
-    rec = {**many[0].to_dict(), "schema_version": 1, "renderer": "layered-v1", "dofsynth_version": "0.1.0"}
+    rec = {**many[0].to_dict(), "schema_version": 2, "renderer": "layered-v2", "dofsynth_version": "0.1.0"}
     assert Scene.from_dict(rec) == many[0]
+    # a schema-1 record (no colour, anchored, visible, rejected) reads with their defaults
+    old = json.loads(json.dumps(many[0].to_dict()))
+    for role in ("front", "middle"):
+        for k in ("anchored", "visible", "rejected"):
+            del old[role][k]
+    for ref in old["assets"].values():
+        del ref["colour"]
+    back = Scene.from_dict(old)
+    assert back.front.anchored == () and back.front.visible == 1.0 and back.assets["front"].colour == "file"
 
 
 def test_record_fields_match_the_format(many):
@@ -44,9 +53,10 @@ def test_record_fields_match_the_format(many):
     assert set(d) == {"key", "split", "index", "seed", "size", "assets", "background", "front", "middle",
                       "targets", "aperture", "options"}
     assert set(d["assets"]) == {"background", "front", "middle"}
-    assert set(d["assets"]["front"]) == {"id", "path", "sha256"}
+    assert set(d["assets"]["front"]) == {"id", "path", "sha256", "colour"}
+    assert d["assets"]["front"]["colour"] == "file"  # built-in cutouts: their own colour
     assert set(d["background"]) == {"mode", "b0", "b1", "direction", "crop", "flip"}
-    assert set(d["front"]) == {"disparity", "scale", "x", "y", "flip"}
+    assert set(d["front"]) == {"disparity", "scale", "x", "y", "flip", "anchored", "visible", "rejected"}
     assert d["aperture"]["kind"] == "polygon" and d["aperture"]["blades"] == 6
     assert d["options"]["highlight"] == {"threshold": 0.9, "gain": 4.0, "power": 2.0}
 

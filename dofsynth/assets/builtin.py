@@ -18,7 +18,7 @@ import hashlib
 import cv2
 import numpy as np
 
-from dofsynth.assets.decode import KINDS, Asset, alpha_bbox
+from dofsynth.assets.decode import KINDS, Asset, alpha_bbox, area_thumb, cut_sides
 from dofsynth.image import to_uint8
 
 BUILTIN_SEED = 20181204  # fixed: the built-in assets never change with a recipe's seed
@@ -338,9 +338,11 @@ def builtin_assets(kind: str) -> tuple[Asset, ...]:
     elif kind == "foreground":
         for name in FOREGROUND_NAMES:
             rgb, a = foreground_pixels(name)
+            box = alpha_bbox(a, name)
             out.append(Asset(id=f"builtin:fg/{name}", kind=kind, path=f"builtin:fg/{name}",
                              sha256=pixels_sha256(rgb, a), size=(rgb.shape[1], rgb.shape[0]),
-                             licence=PROCEDURAL_LICENCE, bbox=alpha_bbox(a, name)))
+                             licence=PROCEDURAL_LICENCE, bbox=box, cut=cut_sides(a.astype(np.float32) / 255),
+                             thumb=area_thumb(a, box)))
     else:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
     return tuple(out)

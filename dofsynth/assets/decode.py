@@ -2,7 +2,7 @@
 scanning and loading share (size, alpha, colour to linear light)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -31,6 +31,8 @@ class Asset:
     alpha_path: str | None = None    # fg/ + alpha/ layout: the alpha file
     alpha_sha256: str | None = None
     bbox: tuple[int, int, int, int] | None = None  # (x, y, w, h) where alpha > 0; None = whole image
+    cut: tuple[str, ...] = ()        # sides ("top", "bottom", "left", "right") where the matte is cut by the photo's border
+    thumb: np.ndarray | None = field(default=None, compare=False, repr=False)  # uint8 alpha of the extent, long side <= THUMB
 
     @property
     def extent(self) -> tuple[int, int, int, int]:
@@ -125,9 +127,61 @@ def alpha_bbox(alpha: np.ndarray, path: str) -> tuple[int, int, int, int]:
     return int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1)
 
 
+THUMB = 64          # long side of an alpha thumbnail, px
+CUT_SHARE = 0.01    # a side is cut when at least this share of it (and CUT_MIN px) is opaque
+CUT_MIN = 4
+SIDES = ("top", "bottom", "left", "right")
+
+
+def cut_sides(alpha: np.ndarray) -> tuple[str, ...]:
+    """The sides of the photo at which its matte is cut: where at least CUT_SHARE of the border
+    line (and CUT_MIN pixels) is opaque (alpha >= 0.5), like a portrait cut at the chest or an
+    animal at its legs. Such an object must touch the frame's edge there, never float."""
+    opaque = np.asarray(alpha) >= 0.5
+    lines = {"top": opaque[0], "bottom": opaque[-1], "left": opaque[:, 0], "right": opaque[:, -1]}
+    return tuple(k for k in SIDES if int(lines[k].sum()) >= max(CUT_MIN, CUT_SHARE * lines[k].size))
+
+
+def area_thumb(alpha: np.ndarray, bbox: tuple[int, int, int, int]) -> np.ndarray:
+    """The alpha inside `bbox` reduced by box means to a long side of at most THUMB px, uint8,
+    in integer arithmetic (the same on every machine): what scene sampling estimates occlusion
+    from."""
+    x, y, w, h = bbox
+    a = np.asarray(alpha)[y:y + h, x:x + w]
+    a = np.rint(a * 255).astype(np.uint32) if a.dtype != np.uint8 else a.astype(np.uint32)
+    f = max(w, h) / THUMB
+    tw, th = (max(1, round(w / f)), max(1, round(h / f))) if f > 1 else (w, h)
+    rows = (np.arange(th) * h) // th
+    cols = (np.arange(tw) * w) // tw
+    sums = np.add.reduceat(np.add.reduceat(a, rows, axis=0), cols, axis=1)
+    counts = np.diff(np.append(rows, h))[:, None] * np.diff(np.append(cols, w))[None, :]
+    return ((sums + counts // 2) // counts).astype(np.uint8)
+
+
 def unit_alpha(a: np.ndarray) -> np.ndarray:
     """An alpha channel as float32 in [0, 1] (uint8 codes / 255)."""
     return a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a
+
+
+FLATTEN_ONTO = {"black": 0.0, "grey": srgb_to_linear(np.float32(0.5)).item(), "white": 1.0}
+
+
+def flatten(rgb: np.ndarray, img: np.ndarray, path: str, policy: str) -> np.ndarray:
+    """A background's colour with its transparency dealt with: an image without an alpha
+    channel, or whose alpha is 1 everywhere, as it is; else refused (`policy` "bad": it would
+    show whatever its transparent pixels hold) or composited onto black, grey or white."""
+    c = img.shape[2]
+    if c not in (2, 4):
+        return rgb
+    a = unit_alpha(img[:, :, c - 1])
+    clear = a < 1
+    if not clear.any():
+        return rgb
+    if policy == "bad":
+        raise AssetError(f"{path}: a background with transparent pixels ({clear.mean():.1%} of it has alpha < 1); "
+                         "make it opaque, or set assets.transparent_background to black, grey or white to flatten it")
+    a = np.clip(a, 0.0, 1.0)[..., None]
+    return (rgb * a + np.float32(FLATTEN_ONTO[policy]) * (1 - a)).astype(np.float32)
 
 
 def colour_linear(img: np.ndarray, path: str) -> np.ndarray:

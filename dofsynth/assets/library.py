@@ -16,13 +16,15 @@ import numpy as np
 
 from dofsynth.assets import builtin as B
 from dofsynth.assets.decode import (KINDS, Asset, AssetError, alpha_bbox, alpha_of, check_size, colour_linear,
-                                    decode_asset, is_exr, unit_alpha)
+                                    decode_asset, flatten, is_exr, unit_alpha)
+from dofsynth.assets.fit import too_small
+from dofsynth.assets.foreground import estimate, estimator_id
 from dofsynth.assets.pins import check_pins
 from dofsynth.assets.scan import Scan, Scanner, read_sources_licences, scan_backgrounds, scan_foregrounds
 from dofsynth.assets.splits import assign_splits
 from dofsynth.color import srgb8_to_linear
 from dofsynth.files import canonical_json, sha256_bytes
-from dofsynth.recipe import BUILTIN, Recipe
+from dofsynth.recipe import BUILTIN, AssetSources, Recipe
 from dofsynth.rng import SPLITS
 
 CACHE_BYTES = 256 * 2**20  # decoded pixels kept per process (a 24 MP photo alone is 288 MB)
@@ -35,20 +37,22 @@ def _nbytes(value) -> int:
 class AssetLibrary:
     """Sorted background and foreground assets, their split, and loaders (linear float32).
 
-    Decoded assets are kept in a per-process LRU cache of at most `cache_size` entries and
-    `cache_bytes` bytes of pixels (an asset larger than that is not kept): with thousands of
-    photos a hit is rare, and the bound keeps a worker's memory flat."""
+    `rules`: the recipe's [assets] table (foreground estimation, flattening of transparent
+    backgrounds). Decoded (and estimated) assets are kept in a per-process LRU cache of at most
+    `cache_bytes` bytes of pixels (an asset larger than that is not kept), so a worker's memory
+    stays flat however many photos there are."""
 
     def __init__(self, backgrounds: list[Asset], foregrounds: list[Asset], splits: dict[str, str],
-                 skipped: list[tuple[str, str]] | None = None, cache_size: int = 8,
-                 cache_bytes: int = CACHE_BYTES):
+                 skipped: list[tuple[str, str]] | None = None, rules: AssetSources | None = None,
+                 cache_bytes: int = CACHE_BYTES, groups: list[list[str]] | None = None):
         self.backgrounds = sorted(backgrounds, key=lambda a: a.id)
         self.foregrounds = sorted(foregrounds, key=lambda a: a.id)
         self.splits = dict(splits)
         self.skipped = list(skipped or [])
+        self.groups = list(groups or [])  # near-duplicate assets that share a split (perceptual hash)
+        self.rules = rules or AssetSources(backgrounds=BUILTIN, foregrounds=BUILTIN)
         self._by_id = {a.id: a for a in (*self.backgrounds, *self.foregrounds)}
         self._cache: OrderedDict[str, object] = OrderedDict()
-        self._cache_size = cache_size
         self._cache_bytes = cache_bytes
 
     def __getstate__(self) -> dict:
@@ -73,6 +77,11 @@ class AssetLibrary:
         one gives another fingerprint (a resume with it is refused)."""
         return sha256_bytes(canonical_json([self.listing(), dict(sorted(self.splits.items()))]))
 
+    def colour(self, asset: Asset) -> str:
+        """Where the loaders' colour of `asset` comes from, as its sample records say: "file",
+        or "estimated:<estimator>-<version>" (a photo + matte pair with estimate_foreground)."""
+        return f"estimated:{estimator_id()}" if asset.alpha_path and self.rules.estimate_foreground else "file"
+
     def __getitem__(self, asset_id: str) -> Asset:
         try:
             return self._by_id[asset_id]
@@ -93,7 +102,7 @@ class AssetLibrary:
         if _nbytes(value) > self._cache_bytes:
             return value
         self._cache[key] = value
-        while len(self._cache) > self._cache_size or sum(map(_nbytes, self._cache.values())) > self._cache_bytes:
+        while sum(map(_nbytes, self._cache.values())) > self._cache_bytes:
             self._cache.popitem(last=False)
         return value
 
@@ -114,7 +123,7 @@ class AssetLibrary:
             else:
                 raw = decode_asset(self._read(asset.path, asset.sha256), asset.path, codes=True)
                 check_size(asset.path, raw.shape[1], raw.shape[0])
-                img = colour_linear(raw, asset.path)
+                img = flatten(colour_linear(raw, asset.path), raw, asset.path, self.rules.transparent_background)
             img = np.ascontiguousarray(img, dtype=np.float32)
             img.setflags(write=False)
             return img
@@ -146,12 +155,22 @@ class AssetLibrary:
                 if is_exr(asset.path) and not asset.alpha_path:
                     # EXR colour is premultiplied by convention: store straight colour
                     rgb = np.where(alpha[..., None] > 0, rgb / np.maximum(alpha[..., None], 1e-6), 0.0)
+                if asset.alpha_path and self.rules.estimate_foreground:  # the photo's backdrop out of soft edges
+                    rgb = estimate(rgb, alpha, asset.sha256, asset.alpha_sha256)
             rgb = np.ascontiguousarray(rgb, dtype=np.float32)
             alpha = np.ascontiguousarray(alpha, dtype=np.float32)
             rgb.setflags(write=False)
             alpha.setflags(write=False)
             return rgb, alpha
         return self._cached(asset.id, make)
+
+
+def _too_small(sc: Scanner, asset: Asset, recipe: Recipe) -> bool:
+    """Refuse (skip or stop, naming it) an asset too small for the recipe's frame size."""
+    why = too_small(asset, recipe)
+    if why is not None:
+        sc.bad(asset.path, why)
+    return why is not None
 
 
 def build_library(recipe: Recipe) -> AssetLibrary:
@@ -164,9 +183,10 @@ def build_library(recipe: Recipe) -> AssetLibrary:
             if not Path(folder).is_dir():
                 raise FileNotFoundError(f"{recipe.path}: asset folder {folder} does not exist")
             lic.update(read_sources_licences(Path(folder)))
-    sc = Scanner(src.on_bad_asset, src.verify, lic, scan)
+    sc = Scanner(src, lic, scan)
     bgs = list(B.builtin_assets("background")) if src.backgrounds == BUILTIN else scan_backgrounds(Path(src.backgrounds), sc)
     fgs = list(B.builtin_assets("foreground")) if src.foregrounds == BUILTIN else scan_foregrounds(Path(src.foregrounds), sc)
+    bgs, fgs = ([a for a in kind if not _too_small(sc, a, recipe)] for kind in (bgs, fgs))
     if src.manifests:
         pinned = check_pins(src.manifests, scan, [*bgs, *fgs])
         relic = lambda a: a if a.licence != "unknown" or a.path not in pinned else replace(a, licence=pinned[a.path])
@@ -174,7 +194,7 @@ def build_library(recipe: Recipe) -> AssetLibrary:
     need = {s: 1 if recipe.samples.count(s) > 0 else 0 for s in SPLITS}
     splits = {**assign_splits(bgs, recipe.seed, src.test_share, need),
               **assign_splits(fgs, recipe.seed, src.test_share, {s: 2 * n for s, n in need.items()})}
-    lib = AssetLibrary(bgs, fgs, splits, scan.skipped)
+    lib = AssetLibrary(bgs, fgs, splits, scan.skipped, rules=src)
     for split in SPLITS:
         if need[split]:
             nb, nf = len(lib.assets_for("background", split)), len(lib.assets_for("foreground", split))

@@ -2,7 +2,8 @@
 `Asset`, with its licence from a SOURCES.md table.
 
 Foregrounds come in two layouts: a folder of RGBA cutouts, or a folder holding `fg/` and
-`alpha/` paired by relative path without suffix (`fg/a/x.jpg` + `alpha/a/x.png`). A bad
+`alpha/` (names set by `assets.fg_dir` / `assets.alpha_dir`) paired by relative path without
+suffix (`fg/a/x.jpg` + `alpha/a/x.png`). A bad
 file is skipped with a warning naming it (`on_bad = "skip"`, listed in `Scan.skipped`) or
 stops the scan with `AssetError` naming it ("stop"). With `verify = "header"` only headers
 (and the small mattes) are decoded here; the loaders decode and check the rest.
@@ -16,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dofsynth.assets.decode import Asset, AssetError, alpha_bbox, alpha_of, check_size, decode_asset, image_header
+from dofsynth.assets.decode import (Asset, AssetError, alpha_bbox, alpha_of, area_thumb, check_size, cut_sides,
+                                    decode_asset, flatten, image_header, unit_alpha)
 from dofsynth.files import sha256_bytes
 from dofsynth.io import IMAGE_SUFFIXES
 
@@ -32,8 +34,8 @@ def rel_id(root: Path, p: Path) -> str:
     return p.relative_to(root).with_suffix("").as_posix()
 
 
-def is_paired_layout(root: Path) -> bool:
-    return (root / "fg").is_dir() and (root / "alpha").is_dir()
+def is_paired_layout(root: Path, fg_dir: str = "fg", alpha_dir: str = "alpha") -> bool:
+    return (root / fg_dir).is_dir() and (root / alpha_dir).is_dir()
 
 
 def read_sources_licences(folder: Path) -> dict[str, str]:
@@ -77,8 +79,12 @@ class Scan:
 
 
 class Scanner:
-    def __init__(self, on_bad: str, verify: str, licences: dict[str, str], out: Scan):
-        self.on_bad, self.decode, self.licences, self.out = on_bad, verify == "decode", licences, out
+    """Scans with a recipe's [assets] rules (`on_bad_asset`, `verify`, the paired layout's
+    folder names, what to do with transparent backgrounds) into `out`."""
+
+    def __init__(self, rules, licences: dict[str, str], out: Scan):
+        self.rules, self.licences, self.out = rules, licences, out
+        self.on_bad, self.decode = rules.on_bad_asset, rules.verify == "decode"
 
     def bad(self, path: str, reason: str) -> None:
         text = reason if reason.startswith(path) else f"{path}: {reason}"
@@ -114,7 +120,9 @@ class Scanner:
 
     def background(self, root: Path, p: Path) -> None:
         try:
-            size, _, _ = self.probe(p, self.read(p))
+            size, img, _ = self.probe(p, self.read(p))
+            if img is not None:
+                flatten(img[..., :3], img, str(p), self.rules.transparent_background)  # refuses if it must
         except AssetError as exc:
             return self.bad(str(p), str(exc))
         self._add("bg/" + rel_id(root, p), "background", p, size)
@@ -122,16 +130,16 @@ class Scanner:
     def cutout(self, root: Path, p: Path) -> None:
         try:
             size, img, c = self.probe(p, self.read(p))
-            bbox = None
+            matte = {}
             if img is not None:
-                bbox = alpha_bbox(alpha_of(img, str(p), True), str(p))
+                matte = _matte(alpha_of(img, str(p), True), str(p))
             elif c not in (2, 4):
                 raise AssetError(f"{p}: foreground without alpha ({c} channels; need RGBA or grey+alpha)")
         except AssetError as exc:
             return self.bad(str(p), str(exc))
-        self._add("fg/" + rel_id(root, p), "foreground", p, size, bbox=bbox)
+        self._add("fg/" + rel_id(root, p), "foreground", p, size, **matte)
 
-    def pair(self, root: Path, p: Path, a: Path) -> None:
+    def pair(self, fg: Path, p: Path, a: Path) -> None:
         try:
             size, _, _ = self.probe(p, self.read(p))
             # mattes are small single-channel files: always decoded, so the bbox and an empty
@@ -140,11 +148,11 @@ class Scanner:
             if asize != size:
                 raise AssetError(f"{a}: alpha is {asize[0]}x{asize[1]} but its foreground {p} is "
                                  f"{size[0]}x{size[1]}")
-            bbox = alpha_bbox(alpha_of(aimg, str(a), False), str(a))
+            matte = _matte(alpha_of(aimg, str(a), False), str(a))
         except AssetError as exc:
             return self.bad(str(p), str(exc))
-        self._add("fg/" + rel_id(root / "fg", p), "foreground", p, size, alpha_path=str(a),
-                  alpha_sha256=self.out.hashes[str(a)], bbox=bbox)
+        self._add("fg/" + rel_id(fg, p), "foreground", p, size, alpha_path=str(a),
+                  alpha_sha256=self.out.hashes[str(a)], **matte)
 
     def unique(self, assets: list[Asset]) -> list[Asset]:
         """`assets` without the later ones of a repeated id (files that differ only in suffix)."""
@@ -157,6 +165,13 @@ class Scanner:
             seen[a.id] = a
             out.append(a)
         return out
+
+
+def _matte(alpha: np.ndarray, path: str) -> dict:
+    """What a scan records of a matte: its bbox (refusing an empty one), cut sides, thumbnail."""
+    alpha = unit_alpha(alpha)
+    bbox = alpha_bbox(alpha, path)
+    return {"bbox": bbox, "cut": cut_sides(alpha), "thumb": area_thumb(alpha, bbox)}
 
 
 def _progress(files: list[Path], what: str):
@@ -174,20 +189,21 @@ def scan_backgrounds(root: Path, sc: Scanner) -> list[Asset]:
 
 def scan_foregrounds(root: Path, sc: Scanner) -> list[Asset]:
     n = len(sc.out.assets)
-    if is_paired_layout(root):
+    fg, al = root / sc.rules.fg_dir, root / sc.rules.alpha_dir
+    if is_paired_layout(root, sc.rules.fg_dir, sc.rules.alpha_dir):
         alphas: dict[str, list[Path]] = {}
-        for a in image_files(root / "alpha"):
-            alphas.setdefault(rel_id(root / "alpha", a), []).append(a)
-        for p in _progress(image_files(root / "fg"), "foregrounds"):
-            found = alphas.pop(rel_id(root / "fg", p), [])
+        for a in image_files(al):
+            alphas.setdefault(rel_id(al, a), []).append(a)
+        for p in _progress(image_files(fg), "foregrounds"):
+            found = alphas.pop(rel_id(fg, p), [])
             if len(found) != 1:
                 why = "no matte" if not found else "several mattes: " + ", ".join(map(str, found))
-                sc.bad(str(p), f"foreground without alpha ({why} under {root / 'alpha'} for this stem)")
+                sc.bad(str(p), f"foreground without alpha ({why} under {al} for this stem)")
                 continue
-            sc.pair(root, p, found[0])
+            sc.pair(fg, p, found[0])
         for stem, left in sorted(alphas.items()):
             for a in left:
-                sc.bad(str(a), f"alpha without a foreground (no {root / 'fg' / stem}.* )")
+                sc.bad(str(a), f"alpha without a foreground (no {fg / stem}.* )")
     else:
         for p in _progress(image_files(root), "foregrounds"):
             sc.cutout(root, p)

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 
+from dofsynth.assets.decode import SIDES
 from dofsynth.compose import COVER_THRESHOLD
 from dofsynth.optics.aperture import APERTURES
 from dofsynth.record import SCHEMA_VERSION
@@ -67,6 +68,8 @@ def check_record_schema(rec) -> list[str]:
                 want(a, "id", lambda v: isinstance(v, str) and v, "a non-empty string", p)
                 want(a, "sha256", lambda v: isinstance(v, str) and len(v) == 64, "a hex sha256", p)
                 want(a, "path", lambda v: isinstance(v, str), "a string", p)
+                want(a, "colour", lambda v: v == "file" or (isinstance(v, str) and v.startswith("estimated:")),
+                     "'file' or 'estimated:<estimator>'", p)
     if want(rec, "background", lambda v: isinstance(v, dict), "an object"):
         b, p = rec["background"], "background."
         want(b, "mode", lambda v: v in ("flat", "ramp"), "'flat' or 'ramp'", p)
@@ -86,6 +89,11 @@ def check_record_schema(rec) -> list[str]:
             want(o, "x", _is_num, "a number", p)
             want(o, "y", _is_num, "a number", p)
             want(o, "flip", lambda v: isinstance(v, bool), "a boolean", p)
+            want(o, "anchored", lambda v: isinstance(v, list) and set(v) <= set(SIDES) and len(set(v)) == len(v),
+                 "a list of distinct sides (top, bottom, left, right)", p)
+            want(o, "visible", _unit, "a number in [0, 1]", p)
+            want(o, "rejected", lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v),
+                 "a list of asset ids", p)
     if want(rec, "targets", lambda v: isinstance(v, list) and len(v) > 0, "a non-empty list"):
         for i, t in enumerate(rec["targets"]):
             p = f"targets[{i}]."
