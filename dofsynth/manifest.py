@@ -38,6 +38,44 @@ def recipe_block(recipe) -> dict:
     return {"text": recipe.text, "sha256": recipe.sha256, "path": str(recipe.path), "name": recipe.name}
 
 
+class Usage:
+    """What the samples of a shard (or a data set) used: per licence, how many samples use an
+    asset under it and which assets (each with its count of samples), and the asset files
+    found bad when loaded. `to_dict()` is what ShardInfo.usage holds and, over all shards, the
+    manifest's `licences` (and its `skipped_assets`, with the library's); `merge` adds another's."""
+
+    def __init__(self, d: dict | None = None):
+        d = d or {}
+        self.licences = {lic: {"samples": int(b["samples"]), "assets": dict(b["assets"])}
+                         for lic, b in d.get("licences", {}).items()}
+        self.bad = dict(d.get("bad_assets", {}))
+
+    def add(self, scene, library, bad: dict[str, str], rel) -> None:
+        by_licence: dict[str, set[str]] = {}
+        for ref in scene.assets.values():
+            by_licence.setdefault(library[ref.id].licence, set()).add(ref.id)
+        for lic, ids in by_licence.items():
+            block = self.licences.setdefault(lic, {"samples": 0, "assets": {}})
+            block["samples"] += 1
+            for i in ids:
+                block["assets"][i] = block["assets"].get(i, 0) + 1
+        self.bad.update({rel(p): rel(why) for p, why in bad.items()})
+
+    def merge(self, other: "Usage") -> "Usage":
+        for lic, b in other.licences.items():
+            mine = self.licences.setdefault(lic, {"samples": 0, "assets": {}})
+            mine["samples"] += b["samples"]
+            for i, n in b["assets"].items():
+                mine["assets"][i] = mine["assets"].get(i, 0) + n
+        self.bad.update(other.bad)
+        return self
+
+    def to_dict(self) -> dict:
+        return {"licences": {lic: {"samples": b["samples"], "assets": dict(sorted(b["assets"].items()))}
+                             for lic, b in sorted(self.licences.items())},
+                "bad_assets": dict(sorted(self.bad.items()))}
+
+
 def build_manifest(recipe, shards: dict[str, list[ShardInfo]], *, limits: dict[str, int | None] | None = None,
                    extra: dict | None = None) -> dict:
     """The manifest dict for finished `shards` (per split, any order: sorted here by index).
@@ -87,7 +125,21 @@ def assemble_manifest(recipe: dict, recipe_samples: dict[str, int], shards: dict
     }
     if extra:
         manifest.update(extra)
+    used = [i.usage for infos in shards.values() for i in infos if i.usage is not None]
+    if used:
+        total = Usage()
+        for u in used:
+            total.merge(Usage(u))
+        manifest["licences"] = total.to_dict()["licences"]
+        manifest["skipped_assets"] = with_bad_assets(manifest.get("skipped_assets", []), total.bad)
     return manifest
+
+
+def with_bad_assets(skipped: list, bad: dict[str, str]) -> list[list[str]]:
+    """The skipped files of a library ([path, reason]) and those found bad on loading, by path."""
+    rows = {str(p): str(why) for p, why in skipped}
+    rows.update({p: why for p, why in bad.items() if p not in rows})
+    return [[p, rows[p]] for p in sorted(rows)]
 
 
 def write_manifest(out: str | os.PathLike, manifest: dict) -> Path:
@@ -144,6 +196,8 @@ def summary(manifest: dict) -> dict:
     }
     if "skipped_assets" in manifest:
         out["skipped_assets"] = manifest["skipped_assets"]
+    if "licences" in manifest:  # samples per licence (the assets are in the manifest)
+        out["licences"] = {lic: b["samples"] for lic, b in manifest["licences"].items()}
     return out
 
 

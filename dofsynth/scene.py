@@ -102,6 +102,7 @@ class Scene:
     targets: tuple[Target, ...]
     aperture: Aperture              # a kind of dofsynth.optics.aperture (its own to_dict in the record)
     options: Options
+    excluded: tuple[str, ...] = ()  # assets left out of this sample's draw: found bad when it loaded them
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict with the record fields of docs/FORMAT.md (lists for tuples)."""
@@ -115,6 +116,7 @@ class Scene:
             "aperture": self.aperture.to_dict(),
             "options": {"highlight": asdict(self.options.highlight) if self.options.highlight else None,
                         "linear_light": self.options.linear_light},
+            "excluded": list(self.excluded),
         }
 
     @classmethod
@@ -131,6 +133,7 @@ class Scene:
             aperture=aperture_from_dict(d["aperture"]),
             options=Options(highlight=Highlight(**hl) if hl else None,
                             linear_light=bool(d["options"].get("linear_light", True))),
+            excluded=tuple(d.get("excluded", ())),
         )
 
 
@@ -301,14 +304,18 @@ def _draw_focus(rng, plane_share: float, ramp: tuple[float, float], f1: float, f
     return free[-1][1] if free else 1.0
 
 
-def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int) -> Scene:
-    """Draw every random choice of sample `index` of `split` (pure data, deterministic)."""
+def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int, exclude=()) -> Scene:
+    """Draw every random choice of sample `index` of `split` (pure data, deterministic).
+    `exclude`: asset ids this sample must not use (bad files found when loading its earlier
+    draw); the draw starts again from the sample's own seed without them."""
     seed = sample_seed(recipe.seed, split, index)
     rng = sample_rng(seed)
     H, W = recipe.frame
-    bgs, fgs = library.assets_for("background", split), library.assets_for("foreground", split)
+    exclude = tuple(sorted(set(exclude)))
+    bgs, fgs = ([a for a in library.assets_for(kind, split) if a.id not in exclude] for kind in ("background", "foreground"))
     if not bgs or len(fgs) < 2:
-        raise ValueError(f"the {split} split needs 1 background and 2 foregrounds, has {len(bgs)} and {len(fgs)}")
+        left = f" once the bad assets {', '.join(exclude)} are left out" if exclude else ""
+        raise ValueError(f"the {split} split needs 1 background and 2 foregrounds, has {len(bgs)} and {len(fgs)}{left}")
 
     # 1. background asset, crop and flip
     bg = bgs[int(rng.integers(len(bgs)))]
@@ -377,5 +384,5 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int) 
         assets={"background": _ref(bg, recipe, library), "front": _ref(front_asset, recipe, library),
                 "middle": _ref(middle_asset, recipe, library)},
         background=background, front=front, middle=middle, targets=tuple(targets),
-        aperture=aperture, options=options,
+        aperture=aperture, options=options, excluded=exclude,
     )

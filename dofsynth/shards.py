@@ -23,7 +23,7 @@ import io
 import os
 import re
 import tarfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -49,6 +49,7 @@ class ShardInfo:
     samples: int        # number of samples (consecutive indices)
     sha256: str
     bytes: int
+    usage: dict | None = field(default=None, compare=False)  # what its samples used: dofsynth.generate.worker.Usage
 
     @property
     def path(self) -> str:
@@ -61,13 +62,15 @@ class ShardInfo:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["path"] = self.path
+        if self.usage is None:
+            del d["usage"]
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "ShardInfo":
         return cls(split=str(d["split"]), index=int(d["index"]), name=str(d["name"]),
                    first_index=int(d["first_index"]), samples=int(d["samples"]),
-                   sha256=str(d["sha256"]), bytes=int(d["bytes"]))
+                   sha256=str(d["sha256"]), bytes=int(d["bytes"]), usage=d.get("usage"))
 
 
 def shard_name(split: str, shard_index: int) -> str:
@@ -194,25 +197,27 @@ def _check_end(path: Path, offset: int) -> None:
         raise ShardError(f"{path}: truncated tar (no end-of-archive marker after the last member)")
 
 
-def iter_members(path: str | os.PathLike, keys=None, data: bool = True) -> Iterator[tuple[str, str, bytes | None]]:
+def iter_members(path: str | os.PathLike, keys=None, data: bool = True,
+                 suffix: str | None = None) -> Iterator[tuple[str, str, bytes | None]]:
     """(key, suffix, bytes) of every regular member of a shard in file order; with `keys`,
-    only the members of those samples (the others' data is skipped, not read); with
-    `data=False`, None instead of the bytes (headers only). `ShardError` names a bad file."""
+    only the members of those samples, with `suffix` only those members (e.g. "json": the
+    others' data is skipped, not read); with `data=False`, None instead of the bytes (headers
+    only). `ShardError` names a bad file."""
     path = Path(path)
     try:
         with tarfile.open(path, "r:") as tar:
             for info in tar:
                 if not info.isfile():
                     continue
-                key, _, suffix = info.name.rsplit("/", 1)[-1].partition(".")
-                if keys is not None and key not in keys:
+                key, _, member = info.name.rsplit("/", 1)[-1].partition(".")
+                if (keys is not None and key not in keys) or (suffix is not None and member != suffix):
                     continue
                 blob = None
                 if data:
                     blob = tar.extractfile(info).read()
                     if len(blob) != info.size:
                         raise ShardError(f"{path}: member {info.name} is truncated")
-                yield key, suffix, blob
+                yield key, member, blob
             end = tar.offset
     except (tarfile.TarError, EOFError, OSError) as exc:
         raise ShardError(f"{path}: unreadable tar ({exc})") from exc

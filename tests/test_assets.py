@@ -240,15 +240,19 @@ def test_rgb_file_in_a_cutout_folder_is_a_foreground_without_alpha(write_recipe,
                                                on_bad_asset="stop")))
 
 
-def test_header_mode_defers_decoding_and_the_loader_names_the_file(write_recipe, tiny_bg_dir, tiny_cutouts):
+def test_header_mode_still_finds_unreadable_files_and_the_loader_names_the_rest(write_recipe, tiny_bg_dir, tiny_cutouts):
+    """verify = "header" reads headers and a reduced grey decode (the perceptual hash), so an
+    unreadable file is skipped at scan time too; what only a full decode shows is left to the
+    loaders, which name the file."""
     good = (tiny_bg_dir / "a.png").read_bytes()
     (tiny_bg_dir / "zz_truncated.png").write_bytes(good[: int(len(good) * 0.6)])
+    write_png(tiny_bg_dir / "holes.png", np.dstack([noise_rgb(80, 96, 6), blob_alpha(80, 96, 6)]))
     lib = build_library(load_recipe(write_recipe(backgrounds=tiny_bg_dir, foregrounds=tiny_cutouts,
-                                                 verify="header", on_bad_asset="stop")))
-    bad = lib["bg/zz_truncated"]
-    assert bad.size == (96, 80)   # the header is intact
-    with pytest.raises(AssetError, match="zz_truncated.png"):
-        lib.load_background(bad)
+                                                 verify="header", on_bad_asset="skip")))
+    assert "not a readable image" in dict(lib.skipped)[str(tiny_bg_dir / "zz_truncated.png")]
+    with pytest.raises(AssetError, match=r"holes\.png: a background with transparent pixels") as exc:
+        lib.load_background(lib["bg/holes"])
+    assert exc.value.asset_id == "bg/holes"
     # a file changed after the scan is refused by the loader too
     a = lib["bg/a"]
     write_png(tiny_bg_dir / "a.png", noise_rgb(80, 96, 99))

@@ -51,7 +51,8 @@ def test_dict_round_trip_is_exact_through_json(many):
 def test_record_fields_match_the_format(many):
     d = many[0].to_dict()
     assert set(d) == {"key", "split", "index", "seed", "size", "assets", "background", "front", "middle",
-                      "targets", "aperture", "options"}
+                      "targets", "aperture", "options", "excluded"}
+    assert d["excluded"] == []
     assert set(d["assets"]) == {"background", "front", "middle"}
     assert set(d["assets"]["front"]) == {"id", "path", "sha256", "colour"}
     assert d["assets"]["front"]["colour"] == "file"  # built-in cutouts: their own colour

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from dofsynth.assets.decode import KINDS, Asset, alpha_bbox, area_thumb, cut_sides
+from dofsynth.assets.similar import hash_grey
 from dofsynth.image import to_uint8
 
 BUILTIN_SEED = 20181204  # fixed: the built-in assets never change with a recipe's seed
@@ -334,7 +335,7 @@ def builtin_assets(kind: str) -> tuple[Asset, ...]:
             px = background_pixels(name)
             out.append(Asset(id=f"builtin:bg/{name}", kind=kind, path=f"builtin:bg/{name}",
                              sha256=pixels_sha256(px), size=(px.shape[1], px.shape[0]),
-                             licence=background_licence(name)))
+                             licence=background_licence(name), phash=hash_grey(cv2.cvtColor(px, cv2.COLOR_RGB2GRAY))))
     elif kind == "foreground":
         for name in FOREGROUND_NAMES:
             rgb, a = foreground_pixels(name)
@@ -342,7 +343,7 @@ def builtin_assets(kind: str) -> tuple[Asset, ...]:
             out.append(Asset(id=f"builtin:fg/{name}", kind=kind, path=f"builtin:fg/{name}",
                              sha256=pixels_sha256(rgb, a), size=(rgb.shape[1], rgb.shape[0]),
                              licence=PROCEDURAL_LICENCE, bbox=box, cut=cut_sides(a.astype(np.float32) / 255),
-                             thumb=area_thumb(a, box)))
+                             thumb=area_thumb(a, box), phash=hash_grey(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))))
     else:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
     return tuple(out)

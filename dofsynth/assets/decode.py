@@ -17,7 +17,12 @@ MAX_LINEAR = 65504.0  # the largest half float
 
 
 class AssetError(ValueError):
-    """A bad or changed asset; the message names the file and the problem."""
+    """A bad or changed asset; the message names the file and the problem. `asset_id`: the
+    library's id of the asset, where a loader knows it (generation can then draw another)."""
+
+    def __init__(self, message: str, asset_id: str | None = None):
+        super().__init__(message)
+        self.asset_id = asset_id
 
 
 @dataclass(frozen=True)
@@ -33,6 +38,7 @@ class Asset:
     bbox: tuple[int, int, int, int] | None = None  # (x, y, w, h) where alpha > 0; None = whole image
     cut: tuple[str, ...] = ()        # sides ("top", "bottom", "left", "right") where the matte is cut by the photo's border
     thumb: np.ndarray | None = field(default=None, compare=False, repr=False)  # uint8 alpha of the extent, long side <= THUMB
+    phash: int | None = None         # 64-bit perceptual hash of the photo (dofsynth.assets.similar)
 
     @property
     def extent(self) -> tuple[int, int, int, int]:

@@ -21,6 +21,7 @@ from dofsynth.assets.fit import too_small
 from dofsynth.assets.foreground import estimate, estimator_id
 from dofsynth.assets.pins import check_pins
 from dofsynth.assets.scan import Scan, Scanner, read_sources_licences, scan_backgrounds, scan_foregrounds
+from dofsynth.assets.similar import near_duplicate_groups
 from dofsynth.assets.splits import assign_splits
 from dofsynth.color import srgb8_to_linear
 from dofsynth.files import canonical_json, sha256_bytes
@@ -53,6 +54,7 @@ class AssetLibrary:
         self.rules = rules or AssetSources(backgrounds=BUILTIN, foregrounds=BUILTIN)
         self._by_id = {a.id: a for a in (*self.backgrounds, *self.foregrounds)}
         self._cache: OrderedDict[str, object] = OrderedDict()
+        self._bad: dict[str, str] = {}  # asset id -> why its file failed to load
         self._cache_bytes = cache_bytes
 
     def __getstate__(self) -> dict:
@@ -60,7 +62,7 @@ class AssetLibrary:
         built-in assets it lists as drawn so far (uint8, 26 MB for all of them), which the
         receiving process then adopts instead of drawing them again."""
         keys = [a.path.split(":", 1)[1] for a in (*self.backgrounds, *self.foregrounds) if a.path.startswith("builtin:")]
-        return {**self.__dict__, "_cache": OrderedDict(), "_builtin_pixels": B.generated(keys)}
+        return {**self.__dict__, "_cache": OrderedDict(), "_bad": {}, "_builtin_pixels": B.generated(keys)}
 
     def __setstate__(self, state: dict) -> None:
         B.adopt(state.pop("_builtin_pixels", {}))
@@ -76,6 +78,14 @@ class AssetLibrary:
         """sha256 of `listing()` and the split of each asset: another photo, a changed or removed
         one gives another fingerprint (a resume with it is refused)."""
         return sha256_bytes(canonical_json([self.listing(), dict(sorted(self.splits.items()))]))
+
+    def failure(self, asset: Asset) -> str | None:
+        """Why `asset`'s files fail to load, or None when they load."""
+        try:
+            (self.load_background if asset.kind == "background" else self.load_foreground)(asset)
+        except AssetError as exc:
+            return str(exc)
+        return None
 
     def colour(self, asset: Asset) -> str:
         """Where the loaders' colour of `asset` comes from, as its sample records say: "file",
@@ -98,7 +108,13 @@ class AssetLibrary:
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
-        value = make()
+        if key in self._bad:  # a bad file stays bad: not decoded again by this process
+            raise AssetError(self._bad[key], key)
+        try:
+            value = make()
+        except AssetError as exc:
+            self._bad[key] = str(exc)
+            raise AssetError(str(exc), key) from exc
         if _nbytes(value) > self._cache_bytes:
             return value
         self._cache[key] = value
@@ -192,9 +208,10 @@ def build_library(recipe: Recipe) -> AssetLibrary:
         relic = lambda a: a if a.licence != "unknown" or a.path not in pinned else replace(a, licence=pinned[a.path])
         bgs, fgs = [relic(a) for a in bgs], [relic(a) for a in fgs]
     need = {s: 1 if recipe.samples.count(s) > 0 else 0 for s in SPLITS}
-    splits = {**assign_splits(bgs, recipe.seed, src.test_share, need),
-              **assign_splits(fgs, recipe.seed, src.test_share, {s: 2 * n for s, n in need.items()})}
-    lib = AssetLibrary(bgs, fgs, splits, scan.skipped, rules=src)
+    groups = [g for kind in (bgs, fgs) for g in near_duplicate_groups({a.id: a.phash for a in kind if a.phash is not None})]
+    splits = {**assign_splits(bgs, recipe.seed, src.test_share, need, groups),
+              **assign_splits(fgs, recipe.seed, src.test_share, {s: 2 * n for s, n in need.items()}, groups)}
+    lib = AssetLibrary(bgs, fgs, splits, scan.skipped, rules=src, groups=groups)
     for split in SPLITS:
         if need[split]:
             nb, nf = len(lib.assets_for("background", split)), len(lib.assets_for("foreground", split))

@@ -12,20 +12,20 @@ import os
 import sys
 from pathlib import Path
 
-from dofsynth.assets.decode import Asset, AssetError, image_header
+from dofsynth.assets.decode import Asset, AssetError, decode_asset, image_header
 from dofsynth.assets.scan import Scan, image_files, is_paired_layout, read_sources_licences
 from dofsynth.files import atomic_write_bytes, canonical_json, read_json, sha256_bytes, sha256_file
 
 PINS_SCHEMA = 1
 
 
-def _kind_of(rel: str, paired_root: bool, forced: str | None, channels: int) -> str:
+def _kind_of(rel: str, paired_root: bool, forced: str | None, channels: int, fg_dir: str, alpha_dir: str) -> str:
     parts = rel.split("/")
-    if "alpha" in parts[:-1]:
+    if alpha_dir in parts[:-1]:
         return "alpha"
     if forced:
         return forced
-    if paired_root and parts[0] == "fg":
+    if paired_root and parts[0] == fg_dir:
         return "foreground"
     if paired_root and parts[0] in ("bg", "background", "backgrounds"):
         return "background"
@@ -33,9 +33,11 @@ def _kind_of(rel: str, paired_root: bool, forced: str | None, channels: int) -> 
 
 
 def pin_folder(root: Path, out_dir: Path, kind: str | None = None, licence: str | None = None,
-               progress: bool = True) -> dict:
+               progress: bool = True, decode: bool = True, fg_dir: str = "fg", alpha_dir: str = "alpha") -> dict:
     """The pinning manifest of every image under `root` (sorted); `root` is written relative
-    to `out_dir`, the folder the manifest goes into."""
+    to `out_dir`, the folder the manifest goes into. Every file is decoded (`decode=False`:
+    headers only), so a truncated or unreadable one is listed under `skipped`, never pinned.
+    `fg_dir` / `alpha_dir`: the paired layout's folder names (assets.fg_dir, assets.alpha_dir)."""
     from tqdm import tqdm
 
     root = root.resolve()
@@ -45,20 +47,24 @@ def pin_folder(root: Path, out_dir: Path, kind: str | None = None, licence: str 
     for sub in sorted(p for p in root.iterdir() if p.is_dir()):
         for k, v in read_sources_licences(sub).items():
             lic.setdefault(k, v)
-    paired = is_paired_layout(root) or (root / "fg").is_dir()
+    paired = is_paired_layout(root, fg_dir, alpha_dir) or (root / fg_dir).is_dir()
     files, skipped = [], []
     for p in tqdm(image_files(root), desc=f"scan {root.name}", unit="file", disable=not progress, file=sys.stderr):
         rel = p.relative_to(root).as_posix()
         data = p.read_bytes()
         try:
             w, h, c = image_header(str(p))
+            if decode:
+                img = decode_asset(data, str(p))
+                if img.shape[:2] != (h, w):
+                    raise AssetError(f"{p}: decodes to {img.shape[1]}x{img.shape[0]}, its header says {w}x{h}")
         except AssetError as exc:
             skipped.append({"path": rel, "reason": str(exc)})
             print(f"dofsynth assets scan: warning: skipping {exc}", file=sys.stderr)
             continue
         files.append({
             "path": rel, "sha256": sha256_bytes(data), "bytes": len(data), "width": w, "height": h,
-            "channels": c, "kind": _kind_of(rel, paired, kind, c),
+            "channels": c, "kind": _kind_of(rel, paired, kind, c, fg_dir, alpha_dir),
             "licence": lic.get(str(p), licence or "unknown"),
         })
     return {"schema_version": PINS_SCHEMA,

@@ -19,6 +19,7 @@ import numpy as np
 
 from dofsynth.assets.decode import (Asset, AssetError, alpha_bbox, alpha_of, area_thumb, check_size, cut_sides,
                                     decode_asset, flatten, image_header, unit_alpha)
+from dofsynth.assets.similar import perceptual_hash
 from dofsynth.files import sha256_bytes
 from dofsynth.io import IMAGE_SUFFIXES
 
@@ -120,28 +121,34 @@ class Scanner:
 
     def background(self, root: Path, p: Path) -> None:
         try:
-            size, img, _ = self.probe(p, self.read(p))
+            data = self.read(p)
+            size, img, _ = self.probe(p, data)
             if img is not None:
                 flatten(img[..., :3], img, str(p), self.rules.transparent_background)  # refuses if it must
+            phash = perceptual_hash(data, str(p))
         except AssetError as exc:
             return self.bad(str(p), str(exc))
-        self._add("bg/" + rel_id(root, p), "background", p, size)
+        self._add("bg/" + rel_id(root, p), "background", p, size, phash=phash)
 
     def cutout(self, root: Path, p: Path) -> None:
         try:
-            size, img, c = self.probe(p, self.read(p))
+            data = self.read(p)
+            size, img, c = self.probe(p, data)
             matte = {}
             if img is not None:
                 matte = _matte(alpha_of(img, str(p), True), str(p))
             elif c not in (2, 4):
                 raise AssetError(f"{p}: foreground without alpha ({c} channels; need RGBA or grey+alpha)")
+            phash = perceptual_hash(data, str(p))
         except AssetError as exc:
             return self.bad(str(p), str(exc))
-        self._add("fg/" + rel_id(root, p), "foreground", p, size, **matte)
+        self._add("fg/" + rel_id(root, p), "foreground", p, size, phash=phash, **matte)
 
     def pair(self, fg: Path, p: Path, a: Path) -> None:
         try:
-            size, _, _ = self.probe(p, self.read(p))
+            data = self.read(p)
+            size, _, _ = self.probe(p, data)
+            phash = perceptual_hash(data, str(p))
             # mattes are small single-channel files: always decoded, so the bbox and an empty
             # matte are known at scan time even with verify = "header"
             asize, aimg, _ = self.probe(a, self.read(a), check=False, decode=True)
@@ -152,7 +159,7 @@ class Scanner:
         except AssetError as exc:
             return self.bad(str(p), str(exc))
         self._add("fg/" + rel_id(fg, p), "foreground", p, size, alpha_path=str(a),
-                  alpha_sha256=self.out.hashes[str(a)], **matte)
+                  alpha_sha256=self.out.hashes[str(a)], phash=phash, **matte)
 
     def unique(self, assets: list[Asset]) -> list[Asset]:
         """`assets` without the later ones of a repeated id (files that differ only in suffix)."""

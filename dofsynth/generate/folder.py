@@ -11,6 +11,7 @@ temp files a killed run leaves.
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 from dofsynth import __version__
@@ -115,7 +116,8 @@ def verify_existing(out: Path, task: ShardTask, known: dict[str, ShardInfo]) -> 
             ok = False
     if not ok:
         final.unlink()
-    return info if ok else None
+        return None
+    return replace(info, usage=rec.usage) if rec is not None else info
 
 
 def remove_shard_temps(out: Path, paths: set[str] | None = None) -> list[str]:

@@ -16,9 +16,8 @@ all of them:
 """
 from __future__ import annotations
 
-import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from dofsynth import __version__
@@ -27,11 +26,11 @@ from dofsynth.generate.executors import Executor, LocalExecutor
 from dofsynth.generate.folder import (OutputNotEmptyError, check_shared_folder, entries, previous_state,
                                       remove_shard_temps, verify_existing)
 from dofsynth.generate.plan import ShardTask, plan_shards, plan_split, split_size
-from dofsynth.generate.worker import library_for, peak_rss_mb
+from dofsynth.generate.worker import library_for, peak_rss_mb, portable, shard_usage
 from dofsynth.locks import OutputLock, RangeLock
-from dofsynth.manifest import (MANIFEST_NAME, PROGRESS_NAME, append_progress, build_manifest, build_part, load_part,
+from dofsynth.manifest import (MANIFEST_NAME, PROGRESS_NAME, Usage, append_progress, build_manifest, build_part, load_part,
                                part_name, progress_part_name, read_progress, remove_progress, start_progress,
-                               write_manifest, write_part)
+                               with_bad_assets, write_manifest, write_part)
 from dofsynth.rng import SPLITS
 from dofsynth.shards import ShardInfo
 
@@ -79,31 +78,26 @@ class GenerateResult:
                 f", {self.samples_per_second:.2f} samples/s ({self.seconds_per_sample_per_worker:.3f} s per "
                 "sample per worker)" if self.generated_samples else ": nothing left to render"),
             f"  size     {self.bytes / 1e6:.1f} MB",
-            f"  skipped  {len(self.skipped_assets)} assets" + (
-                ": " + ", ".join(str(a) for a in self.skipped_assets[:5]) if self.skipped_assets else ""),
+            f"  skipped  {len(self.skipped_assets)} assets" + (":" if self.skipped_assets else ""),
         ]
+        lines += [f"    {why if why.startswith(path) else f'{path}: {why}'}" for path, why in self.skipped_assets]
         if self.removed:
             lines.append(f"  removed  {len(self.removed)} stale files: " + ", ".join(self.removed[:5]))
         return lines
 
 
 def _skipped_assets(library, recipe) -> list[list[str]]:
-    """The library's skipped files as [path, reason], with the recipe's folder and its asset
-    folders written relative to the recipe's folder, so that the manifest does not depend on
-    where the recipe and assets lie on this machine."""
-    base = recipe.base_dir
-    roots = {base} | {r for r in (recipe.assets.backgrounds, recipe.assets.foregrounds) if os.path.isabs(r)}
-    subs = []
-    for r in sorted(roots, key=len, reverse=True):  # longest first: an asset folder inside base
-        rp = os.path.relpath(r, base)
-        subs.append((r.rstrip(os.sep) + os.sep, "" if rp == "." else rp + os.sep))
-
-    def rel(text: str) -> str:
-        for a, b in subs:
-            text = text.replace(a, b)
-        return text
-
+    """The library's skipped files as [path, reason], relative to the recipe's folder."""
+    rel = portable(recipe)
     return [[rel(str(p)), rel(str(reason))] for p, reason in library.skipped]
+
+
+def _bad_assets(done: list[ShardInfo]) -> dict[str, str]:
+    """The asset files the shards' samples found bad when loading them."""
+    total = Usage()
+    for info in done:
+        total.merge(Usage(info.usage))
+    return total.bad
 
 
 def _make(recipe, out: Path, executor, tasks: list[ShardTask], todo: list[ShardTask], limits: dict,
@@ -286,7 +280,7 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a folder")
     library = library_for(recipe)  # a bad asset folder stops the run here, before OUT is touched
-    assets = {"sha256": library.fingerprint(), "files": library.listing()}
+    assets = {"sha256": library.fingerprint(), "files": library.listing(), "groups": library.groups}
     run = _Range(recipe, out, splits, limit, resume, assets, shard_range) if shard_range is not None else \
         _Whole(recipe, out, splits, limit, resume, assets)
     executor.prepare()  # e.g. join the Ray cluster, before OUT is touched
@@ -299,6 +293,8 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
             todo: list[ShardTask] = []
             for t in run.tasks:  # the kept shards' hashes go into the new progress file...
                 info = verify_existing(out, t, run.known) if resume else None
+                if info is not None and info.usage is None:  # not recorded: read from its records
+                    info = replace(info, usage=shard_usage(out / info.path, recipe, library))
                 (done if info is not None else todo).append(info or t)
             kept = len(done)
             start_progress(out, run.header, run.progress, done)
@@ -327,7 +323,7 @@ def generate(recipe, out, workers: int = 1, splits=SPLITS, limit: int | None = N
         out=out, manifest=manifest, samples=sum(i.samples for i in done), shards=len(done),
         generated_samples=sum(t.samples for t in todo), generated_shards=len(todo), kept_shards=kept,
         removed=removed, seconds=time.perf_counter() - t0, bytes=sum(i.bytes for i in done),
-        skipped_assets=skipped, peak_rss_mb=peak, shard_seconds=busy, executor=executor.describe(),
+        skipped_assets=with_bad_assets(skipped, _bad_assets(done)), peak_rss_mb=peak, shard_seconds=busy, executor=executor.describe(),
         shard_range=run.range if ranged else None, plan_shards=run.plan_size, part=run.final if ranged else None)
     if progress:
         print("\n".join(result.summary_lines()), flush=True)

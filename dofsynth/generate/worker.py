@@ -7,17 +7,19 @@ machine, the executor, the order shards finish in, or a resume.
 """
 from __future__ import annotations
 
+import json
 import os
 import resource
 import sys
 from pathlib import Path
 
-from dofsynth.assets import build_library
+from dofsynth.assets import AssetError, build_library
 from dofsynth.generate.plan import shard_task
+from dofsynth.manifest import Usage
 from dofsynth.rng import sample_key
 from dofsynth.sample import render_sample
-from dofsynth.scene import sample_scene
-from dofsynth.shards import ShardInfo, ShardWriter
+from dofsynth.scene import Scene, sample_scene
+from dofsynth.shards import ShardInfo, ShardWriter, iter_members
 
 _LIBRARY: dict = {"key": None, "library": None}
 
@@ -32,27 +34,87 @@ def library_for(recipe, library=None):
     return _LIBRARY["library"]
 
 
+def portable(recipe):
+    """A function that writes the recipe's folder and its absolute asset folders in a text
+    relative to the recipe's folder, so that manifests do not depend on where the recipe and
+    its assets lie on this machine."""
+    base = recipe.base_dir
+    roots = {base} | {r for r in (recipe.assets.backgrounds, recipe.assets.foregrounds) if os.path.isabs(r)}
+    subs = []
+    for r in sorted(roots, key=len, reverse=True):  # longest first: an asset folder inside base
+        rp = os.path.relpath(r, base)
+        subs.append((r.rstrip(os.sep) + os.sep, "" if rp == "." else rp + os.sep))
+
+    def rel(text: str) -> str:
+        for a, b in subs:
+            text = text.replace(a, b)
+        return text
+
+    return rel
+
+
+def draw_and_render(recipe, library, split: str, index: int):
+    """(scene, members, bad) of sample `index` of `split`: the scene sampled from its own seed
+    and rendered. A file that fails to load under `on_bad_asset = "skip"` (found only now with
+    `verify = "header"`) is left out and the scene drawn again from the same seed, so the
+    sample depends on which files are bad, never on the order they were found in; `bad` maps
+    each such asset's path to why (a warning names it too)."""
+    bad: dict[str, str] = {}
+    excluded: list[str] = []
+    while True:
+        scene = sample_scene(recipe, library, split, index, exclude=excluded)
+        try:
+            return scene, render_sample(scene, library), bad
+        except AssetError as exc:
+            if recipe.assets.on_bad_asset != "skip" or exc.asset_id is None or exc.asset_id in excluded:
+                raise
+            excluded.append(exc.asset_id)
+            path = library[exc.asset_id].path
+            if path not in _WARNED:
+                _WARNED.add(path)
+                print(f"dofsynth: warning: skipping asset {exc}", file=sys.stderr, flush=True)
+            bad[path] = str(exc)
+
+
+_WARNED: set[str] = set()  # assets this process has warned about
+
+
 def render_one(recipe, library, split: str, index: int) -> tuple[str, dict[str, bytes]]:
-    """(key, members) of sample `index` of `split`: the scene sampled from its own seed."""
-    return sample_key(split, index), render_sample(sample_scene(recipe, library, split, index), library)
+    """(key, members) of sample `index` of `split` (`draw_and_render`)."""
+    return sample_key(split, index), draw_and_render(recipe, library, split, index)[1]
+
+
+def shard_usage(path, recipe, library) -> dict:
+    """The Usage of a finished shard from its sample records (a kept shard whose usage was not
+    recorded: made before a manifest was written, or by an older run of the same data set)."""
+    usage, rel = Usage(), portable(recipe)
+    for _, _, blob in iter_members(path, suffix="json"):
+        scene = Scene.from_dict(json.loads(blob))
+        bad = {library[i].path: library.failure(library[i]) or "failed to load" for i in scene.excluded}
+        usage.add(scene, library, bad, rel)
+    return usage.to_dict()
 
 
 def generate_shard(recipe, out, split: str, shard_index: int, *, limit: int | None = None,
                    library=None, on_sample=None) -> ShardInfo:
     """Render shard `shard_index` of `split` to `OUT/<split>/<split>-NNNNNN.tar` (temp name,
-    then rename) and return its ShardInfo. The bytes depend only on the recipe, split, shard
-    index and `limit` (which can shorten the last shard). `library` defaults to this
-    process's cached one; `on_sample(1)` is called after each sample is written."""
+    then rename) and return its ShardInfo (with the shard's Usage). The bytes depend only on
+    the recipe (and its asset files), split, shard index and `limit` (which can shorten the
+    last shard). `library` defaults to this process's cached one; `on_sample(1)` is called
+    after each sample is written."""
     task = shard_task(recipe, split, shard_index, limit)
     library = library if library is not None else library_for(recipe)
     final = Path(out) / split / task.name
+    usage, rel = Usage(), portable(recipe)
     with ShardWriter(final) as writer:
         for i in range(task.first_index, task.first_index + task.samples):
-            writer.write(*render_one(recipe, library, split, i))
+            scene, members, bad = draw_and_render(recipe, library, split, i)
+            writer.write(sample_key(split, i), members)
+            usage.add(scene, library, bad, rel)
             if on_sample is not None:
                 on_sample(1)
     return ShardInfo(split=split, index=task.index, name=task.name, first_index=task.first_index,
-                     samples=writer.samples, sha256=writer.sha256, bytes=writer.bytes)
+                     samples=writer.samples, sha256=writer.sha256, bytes=writer.bytes, usage=usage.to_dict())
 
 
 def peak_rss_mb() -> float:

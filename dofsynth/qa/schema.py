@@ -109,6 +109,7 @@ def check_record_schema(rec) -> list[str]:
                 want(ap, "blades", lambda v: _is_int(v) and v >= 3, "an integer >= 3", "aperture.")
                 want(ap, "rotation", _is_num, "a number", "aperture.")
     want(rec, "options", lambda v: isinstance(v, dict), "an object")
+    want(rec, "excluded", lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v), "a list of asset ids")
     want(rec, "renderer", lambda v: isinstance(v, str), "a string")
     want(rec, "dofsynth_version", lambda v: isinstance(v, str), "a string")
     return errs
