@@ -5,15 +5,19 @@ speed-up from 1 to 2 local workers, all in one run.
     .venv/bin/python benchmarks/generate.py --sizes 1024 --samples 4 --scaling 0:0
     .venv/bin/python benchmarks/generate.py --sizes 512 1024 --floor   # plus the I/O floor
 
-The recipe is recipes/deeplens-18k.toml (1 target per scene, max CoC 32 px at 1024 px) with the
-built-in assets, its size set to each --sizes value and max CoC scaled with it, the same
---samples samples at every size, one sample per shard (so both workers of a 2-worker run have
-work). Every run uses fresh spawn worker processes (also for 1 worker), so a worker's peak
-memory belongs to that size alone. Columns:
+The built-in case is recipes/deeplens-18k.toml (1 target per scene, max CoC 32 px at 1024 px)
+with the built-in assets, its size set to each --sizes value and max CoC scaled with it, the
+same --samples samples at every size, one sample per shard (so both workers of a 2-worker run
+have work). The real-photo case is recipes/shared-assets.toml (2 targets, the photos, mattes
+and estimated foregrounds of ../shared/assets) at --real-sizes, with the per-worker asset cache
+("real") and without it ("real, no cache": every sample decodes its photos, as with a library
+of thousands). Every run uses fresh spawn worker processes (also for 1 worker), so a worker's
+peak memory belongs to that case alone. Columns:
 - `s/sample`: time inside `generate_shard` per sample with 1 worker (scene, layers, render,
-  encode, write): the steady-state cost per core, the median of --repeat runs (the sizes
-  interleaved; `runs` gives their range); `x1024`: its ratio to the first size, beside
-  `px ratio`, the ratio of pixel counts (target: time grows no faster than the pixels).
+  encode, write): the steady-state cost per core, the median of --repeat runs (the cases
+  interleaved; `runs` gives their range); `ratio`: for the built-in case its ratio to the
+  first size, beside `px ratio`, the ratio of pixel counts (target: time grows no faster than
+  the pixels); for the real photos, the ratio to the built-in case at the same size.
 - `peak MiB/worker`: largest `ru_maxrss` measured inside a worker (1- and 2-worker runs), against
   the 1.5 GB (1536 MiB) target.
 - `w=2 steady`: (s/sample per worker at w=1) / (s/sample per worker at w=2) * 2, the speed-up of
@@ -30,6 +34,7 @@ On a machine whose cores are shared with other jobs the 2-worker numbers mostly 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import re
 import statistics
@@ -43,6 +48,7 @@ sys.path.insert(0, str(ROOT))
 
 from dofsynth.generate import LocalExecutor, generate, render_one  # noqa: E402
 from dofsynth.generate.worker import MALLOC_ENV, WORKER_MMAP_THRESHOLD, WORKER_TRIM_THRESHOLD, library_for  # noqa: E402
+from dofsynth.assets.library import CACHE_ENV  # noqa: E402
 from dofsynth.recipe import recipe_from_text  # noqa: E402
 
 TARGET_MIB = 1536
@@ -67,6 +73,20 @@ def bench_recipe(base_text: str, size: int, samples: int, shard_size: int = 1):
     return recipe_from_text(t, f"bench-{size}.toml", ROOT / "recipes")
 
 
+def real_recipe(size: int, samples: int, shard_size: int = 1):
+    """recipes/shared-assets.toml (the real photos and mattes in ../shared/assets) at `size` px,
+    max CoC scaled from its 512 px, `samples` train only. Its Kodak backgrounds are 768x512, so
+    the benchmark lets them be magnified (assets.max_upscale = 2): a benchmark, not a data set."""
+    t = (ROOT / "recipes" / "shared-assets.toml").read_text(encoding="utf-8")
+    t = re.sub(r"(?m)^size = \d+", f"size = {size}", t)
+    t = re.sub(r"(?m)^shard_size = \d+", f"shard_size = {shard_size}", t)
+    t = re.sub(r"(?m)^samples = \{[^}]*\}", f"samples = {{ train = {samples}, test = 0 }}", t)
+    t = re.sub(r"(?m)^max_upscale = .*$", "", t).replace("[assets]\n", "[assets]\nmax_upscale = 2.0\n", 1)
+    t = re.sub(r"(?m)^max_coc = \[([\d.]+), ([\d.]+)\]",
+               lambda m: f"max_coc = [{float(m.group(1)) * size / 512}, {float(m.group(2)) * size / 512}]", t)
+    return recipe_from_text(t, f"bench-real-{size}.toml", ROOT / "recipes")
+
+
 def io_floor(recipe, n: int, folder: Path) -> float:
     """Seconds per sample to encode the decoded arrays again and write them as one tar."""
     from dofsynth.io import encode_exr
@@ -85,6 +105,21 @@ def io_floor(recipe, n: int, folder: Path) -> float:
         out.append((key, members))
     write_shard(folder / "floor.tar", out)
     return (time.perf_counter() - t0) / n
+
+
+@contextlib.contextmanager
+def _environ(env: dict):
+    """`env` set in os.environ (which spawn workers inherit) for the block."""
+    old = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def run(recipe, out: Path, workers: int):
@@ -110,6 +145,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=5,
                     help="1-worker runs per size, the sizes interleaved; s/sample is their median (default 5: "
                          "a slow spell of a shared machine rarely covers 3 of 5)")
+    ap.add_argument("--real-sizes", type=int, nargs="*", default=[1024], metavar="SIZE",
+                    help="sizes of the real-photo case, recipes/shared-assets.toml on ../shared/assets "
+                         "(default 1024; none: skip it)")
     ap.add_argument("--floor", action="store_true", help="also measure the I/O floor (in this process)")
     ap.add_argument("--malloc", default=None, metavar="SETTING",
                     help="the workers' glibc malloc setting (DOFSYNTH_WORKER_MALLOC): 'default' = glibc's own, "
@@ -125,33 +163,46 @@ def main(argv=None) -> int:
     base = args.recipe.read_text(encoding="utf-8")
     print(f"cores: {os.cpu_count()}, load average: {' '.join(f'{x:.1f}' for x in os.getloadavg())}, "
           f"worker malloc: {setting}")
-    recipes = {size: bench_recipe(base, size, args.samples) for size in args.sizes}
-    per: dict[int, list[float]] = {size: [] for size in args.sizes}
-    peak: dict[int, float] = {size: 0.0 for size in args.sizes}
+    # (case, size, recipe, environment of its workers); real photos: warm per-worker asset cache,
+    # and none (DOFSYNTH_ASSET_CACHE_MIB=0: every sample decodes, as with a library of thousands)
+    cases = [("built-in", size, bench_recipe(base, size, args.samples), {}) for size in args.sizes]
+    if not (ROOT.parent / "shared" / "assets" / "SOURCES.md").is_file():
+        print(f"(no real-photo case: {ROOT.parent / 'shared' / 'assets'} is missing)")
+    else:
+        for size in args.real_sizes:
+            real = real_recipe(size, args.samples)
+            for sample in range(args.samples):  # the estimated foregrounds on disk, as in a second run
+                render_one(real, library_for(real), "train", sample)
+            cases += [("real", size, real, {}), ("real, no cache", size, real, {CACHE_ENV: "0"})]
+    per: dict[int, list[float]] = {i: [] for i in range(len(cases))}
+    peak: dict[int, float] = {i: 0.0 for i in range(len(cases))}
     with tempfile.TemporaryDirectory() as tmp:
-        for r in range(args.repeat):  # sizes interleaved: a slow spell of the machine hits them all
-            for size in args.sizes:
-                res = run(recipes[size], Path(tmp) / f"w1-{size}-{r}", 1)
-                per[size].append(res.seconds_per_sample_per_worker)
-                peak[size] = max(peak[size], res.peak_rss_mb)
-    print(f"{'size':>5} {'n':>3} {'s/sample':>9} {'runs':>17} {'x' + str(args.sizes[0]):>6} {'px ratio':>8} "
-          f"{'peak MiB/worker':>16} {'w=2 steady':>11}" + (f" {'floor s':>8}" if args.floor else ""), flush=True)
+        for r in range(args.repeat):  # cases interleaved: a slow spell of the machine hits them all
+            for i, (_, size, recipe, env) in enumerate(cases):
+                with _environ(env):
+                    res = run(recipe, Path(tmp) / f"w1-{i}-{r}", 1)
+                per[i].append(res.seconds_per_sample_per_worker)
+                peak[i] = max(peak[i], res.peak_rss_mb)
     first = args.sizes[0]
-    for size in args.sizes:
-        recipe = recipes[size]
-        with tempfile.TemporaryDirectory() as tmp:
+    print(f"{'case':<15} {'size':>5} {'n':>3} {'s/sample':>9} {'runs':>13} {'ratio':>6} {'px ratio':>8} "
+          f"{'peak MiB/worker':>16} {'w=2 steady':>11}" + (f" {'floor s':>8}" if args.floor else ""), flush=True)
+    builtin = {size: statistics.median(per[i]) for i, (case, size, _, _) in enumerate(cases) if case == "built-in"}
+    for i, (case, size, recipe, env) in enumerate(cases):
+        with tempfile.TemporaryDirectory() as tmp, _environ(env):
             w2 = run(recipe, Path(tmp) / "w2", 2)
             floor = io_floor(recipe, min(args.samples, 2), Path(tmp)) if args.floor else None
-        med = statistics.median(per[size])
-        t_ratio, px_ratio = med / statistics.median(per[first]), (size / first) ** 2
-        top = max(peak[size], w2.peak_rss_mb)
+        med = statistics.median(per[i])
+        ratio = med / builtin[first] if case == "built-in" else med / builtin.get(size, float("nan"))
+        px = f"{(size / first) ** 2:8.2f}" if case == "built-in" else f"{'':8}"
+        top = max(peak[i], w2.peak_rss_mb)
         flag = "" if top <= TARGET_MIB else " !"
         steady = 2 * med / w2.seconds_per_sample_per_worker
-        spread = f"{min(per[size]):.3f}-{max(per[size]):.3f}"
-        print(f"{size:>5} {args.samples:>3} {med:>9.3f} {spread:>17} {t_ratio:>6.2f} {px_ratio:>8.2f} {top:>14.0f}{flag:2s} "
+        spread = f"{min(per[i]):.3f}-{max(per[i]):.3f}"
+        print(f"{case:<15} {size:>5} {args.samples:>3} {med:>9.3f} {spread:>13} {ratio:>6.2f} {px} {top:>14.0f}{flag:2s} "
               f"{steady:>11.2f}" + (f" {floor:>8.3f}" if floor is not None else ""), flush=True)
-    print(f"(s/sample: median over --repeat 1-worker runs of the time inside generate_shard; target x{args.sizes[0]} <= px ratio, time growing no "
-          f"faster than the pixel count. Peak target <= {TARGET_MIB} MiB per worker; '!' marks a size over it.)")
+    print(f"(s/sample: median over --repeat 1-worker runs of the time inside generate_shard. ratio: built-in, to "
+          f"{first} px (target: <= px ratio, time growing no faster than the pixel count); real, to built-in at "
+          f"the same size. Peak target <= {TARGET_MIB} MiB per worker; '!' marks a case over it.)")
     if args.scaling:
         size, n = args.scaling
         recipe = bench_recipe(base, size, n, shard_size=2)

@@ -4,7 +4,9 @@ and the coverages (no blur: the renderer blurs the planes; highlights are left t
 All pixels are linear light float32. Resampling: cv2 INTER_AREA when shrinking (both sides not
 larger than the source), INTER_LINEAR otherwise. Foregrounds are resampled premultiplied
 (colour x alpha together with alpha) and turned back to straight colour, so no dark or bright
-fringes come from the transparent surround.
+fringes come from the transparent surround; an object placed at half its size or less is
+resampled from the level of its area-halved pyramid (`dofsynth.image.pyramid_level`) that is
+still at least the placed size, which the library caches (`AssetLibrary.premultiplied`).
 
 `SceneLayers.disparity` is, at each pixel, the disparity of the front-most plane whose alpha is
 >= 0.5 there (the background's map where neither foreground reaches 0.5): the depth a
@@ -18,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from dofsynth.assets import Asset, AssetLibrary
-from dofsynth.image import resize
+from dofsynth.image import area_halve, premultiply, pyramid_level, resize
 from dofsynth.render.planes import Plane, alpha_box
 from dofsynth.scene import ObjectParams, Scene, background_disparity, placed_size
 
@@ -85,13 +87,23 @@ def place_foreground(rgb: np.ndarray, alpha: np.ndarray, extent, params: ObjectP
                      h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
     """Crop the asset to `extent`, flip, resize premultiplied by `params.scale` and put its top-left
     at (params.x, params.y) of an (h, w) frame. Returns straight colour (H, W, 3) and alpha (H, W),
-    both zero outside the object."""
-    ex, ey, ew, eh = (int(v) for v in extent)
-    a = alpha[ey:ey + eh, ex:ex + ew]
-    premul = np.concatenate([rgb[ey:ey + eh, ex:ex + ew] * a[..., None], a[..., None]], axis=2)
+    both zero outside the object. The same pixels as `scene_layers` makes from the library's
+    cached pyramid (`AssetLibrary.premultiplied`)."""
+    _, _, ew, eh = (int(v) for v in extent)
+    size = placed_size(params.scale, ew, eh)
+    premul = premultiply(rgb, alpha, extent)
+    for _ in range(pyramid_level((ew, eh), size)):
+        premul = area_halve(premul)
+    return place_premultiplied(premul, size, params, h, w)
+
+
+def place_premultiplied(premul: np.ndarray, size: tuple[int, int], params: ObjectParams,
+                        h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """An object's premultiplied extent (any pyramid level) flipped, resized to `size` (w, h) and
+    put at (params.x, params.y) of an (h, w) frame: straight colour (H, W, 3) and alpha (H, W)."""
     if params.flip:
         premul = premul[:, ::-1]
-    pw, ph = placed_size(params.scale, ew, eh)
+    pw, ph = size
     small = resize(premul, pw, ph)
     out_rgb = lazy_zeros((h, w, 3))
     out_a = lazy_zeros((h, w))
@@ -147,8 +159,10 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> SceneLayers:
     planes = [Plane(rgb=bg_rgb, alpha=ones, disparity=bg_plane_disp)]
     for role, params in (("middle", scene.middle), ("front", scene.front)):
         asset = _asset(library, scene, role)
-        rgb, alpha = library.load_foreground(asset)
-        prgb, pa = place_foreground(rgb, alpha, asset.extent, params, h, w)
+        _, _, ew, eh = asset.extent
+        size = placed_size(params.scale, ew, eh)
+        premul = library.premultiplied(asset, pyramid_level((ew, eh), size))
+        prgb, pa = place_premultiplied(premul, size, params, h, w)
         planes.append(Plane(rgb=prgb, alpha=pa, disparity=float(params.disparity)))
 
     boxes = []

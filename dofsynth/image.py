@@ -20,6 +20,38 @@ def resize(img: np.ndarray, w: int, h: int, nearest: bool = False) -> np.ndarray
     return out.reshape(int(h), int(w), *img.shape[2:])
 
 
+def premultiply(rgb: np.ndarray, alpha: np.ndarray, box) -> np.ndarray:
+    """(h, w, 4) float32 of the (x, y, w, h) `box` of straight colour `rgb` (H, W, 3) and
+    `alpha` (H, W): colour x alpha, then alpha."""
+    x, y, w, h = (int(v) for v in box)
+    a = alpha[y:y + h, x:x + w, None]
+    return np.concatenate([rgb[y:y + h, x:x + w] * a, a], axis=2, dtype=np.float32)
+
+
+def halved_size(w: int, h: int) -> tuple[int, int]:
+    """The (w, h) of `area_halve` of a (w, h) image: each side halved, rounded down, >= 1."""
+    return max(1, w // 2), max(1, h // 2)
+
+
+def area_halve(img: np.ndarray) -> np.ndarray:
+    """`img` (H, W, C) area-resampled to `halved_size` (a new float32 array): one level of the
+    pyramid that small placements are resampled from."""
+    w, h = halved_size(img.shape[1], img.shape[0])
+    out = cv2.resize(np.ascontiguousarray(img, dtype=np.float32), (w, h), interpolation=cv2.INTER_AREA)
+    return out.reshape(h, w, *img.shape[2:])
+
+
+def pyramid_level(size: tuple[int, int], target: tuple[int, int]) -> int:
+    """The most halvings (`halved_size`) of a (w, h) `size` that keep it at least `target`
+    (w, h) on both sides: the level to resample a shrinking image from (0 when it grows)."""
+    level, (w, h) = 0, size
+    while True:
+        nw, nh = halved_size(w, h)
+        if (nw, nh) == (w, h) or nw < target[0] or nh < target[1]:
+            return level
+        level, w, h = level + 1, nw, nh
+
+
 def to_uint8(x: np.ndarray) -> np.ndarray:
     """Values in [0, 1] (clipped) to uint8 codes with round-half-up: floor(x * 255 + 0.5)."""
     return np.floor(np.clip(x, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

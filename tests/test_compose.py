@@ -183,3 +183,37 @@ def test_aif_rows_are_the_aif(layers_of):
         H = full.shape[0]
         blocks = np.concatenate([L.aif_rows(r, min(r + 7, H)) for r in range(0, H, 7)])
         np.testing.assert_array_equal(blocks, full)
+
+
+def test_small_placements_resample_from_the_cached_pyramid_with_the_same_pixels(demo_recipe, monkeypatch):
+    """scene_layers takes each object from the library's cached premultiplied pyramid
+    (AssetLibrary.premultiplied): the same pixels as place_foreground from the whole asset, the
+    level that is still at least the placed size, and cached by file hash and level."""
+    from dofsynth.image import halved_size, pyramid_level
+
+    assert pyramid_level((400, 300), (400, 300)) == 0 and pyramid_level((400, 300), (500, 100)) == 0
+    assert pyramid_level((400, 300), (200, 150)) == 1 and pyramid_level((400, 300), (100, 74)) == 2 and pyramid_level((400, 300), (101, 74)) == 1
+    assert halved_size(401, 3) == (200, 1) and halved_size(1, 1) == (1, 1)
+    lib = build_library(demo_recipe)
+    seen_levels = set()
+    for i in range(12):
+        s = sample_scene(demo_recipe, lib, "train", i)
+        layers = scene_layers(s, lib)
+        for plane, role in ((layers.planes[1], "middle"), (layers.planes[2], "front")):
+            asset, params = lib[s.assets[role].id], getattr(s, role)
+            rgb, alpha = lib.load_foreground(asset)
+            want_rgb, want_a = place_foreground(rgb, alpha, asset.extent, params, *s.size)
+            assert np.array_equal(plane.alpha, want_a) and np.array_equal(plane.rgb, want_rgb)
+            _, _, ew, eh = asset.extent
+            seen_levels.add(pyramid_level((ew, eh), placed_size(params.scale, ew, eh)))
+    assert 0 in seen_levels and max(seen_levels) >= 1  # both paths were taken
+    keys = [k for k in lib._cache if "premul@" in k]
+    assert keys and all(k.split(":")[0].split("+")[0] in {a.sha256 for a in lib.foregrounds} for k in keys)
+    # DOFSYNTH_ASSET_CACHE_MIB bounds the cache of the process that reads it: 0 keeps nothing
+    monkeypatch.setenv("DOFSYNTH_ASSET_CACHE_MIB", "0")
+    fresh = build_library(demo_recipe)
+    scene_layers(sample_scene(demo_recipe, fresh, "train", 0), fresh)
+    assert not fresh._cache
+    monkeypatch.setenv("DOFSYNTH_ASSET_CACHE_MIB", "lots")
+    with pytest.raises(ValueError, match="DOFSYNTH_ASSET_CACHE_MIB='lots': expected a number of MiB"):
+        scene_layers(sample_scene(demo_recipe, fresh, "train", 0), fresh)

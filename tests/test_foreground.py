@@ -90,9 +90,11 @@ def test_the_cache_gives_the_same_bytes_and_a_broken_entry_is_made_again(tmp_pat
     files = list((tmp_path / "cache" / "foreground").iterdir())
     assert len(files) == 1 and files[0].name.startswith(estimator_id()) and cache_dir() == tmp_path / "cache"
     assert np.array_equal(estimate(photo, alpha, "f" * 64, "0" * 64), first)  # from the cache
-    files[0].write_bytes(b"\x89PNG broken")
+    n = int(((alpha > 0) & (alpha < 1)).sum())
+    assert files[0].name.endswith(f"-{n}.npy") and np.load(files[0]).shape == (n, 3)  # the soft pixels' codes
+    files[0].write_bytes(b"\x93NUMPY broken")
     assert np.array_equal(estimate(photo, alpha, "f" * 64, "0" * 64), first)  # made again
-    assert _read(files[0]).shape == photo.shape
+    assert np.load(files[0]).shape == (n, 3)
     # another process, its own empty cache, the same bytes
     code = ("import numpy as np, sys; from dofsynth.assets.foreground import estimate; "
             "rng = np.random.default_rng(1); p = rng.random((32, 48, 3), dtype=np.float32); "

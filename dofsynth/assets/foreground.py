@@ -4,14 +4,17 @@ A matting set's photo is the object composited over its original backdrop: where
 between 0 and 1 (hair, fur, a net) the photo's colour holds backdrop too, which compositing
 would carry into the new scene (a book title readable in a doll's hair). `estimate` solves for
 the object's own colour F in I = alpha F + (1 - alpha) B with pymatting's multilevel
-foreground estimation (Germer et al. 2020) in linear light, and keeps the photo where alpha is
-1. The result is quantised to 8-bit sRGB codes (the precision of the photo) and cached on disk
-per pair (by both files' sha256), so a large set pays for it once and every process, cached
-or not, gets the same bytes. numba compiles pymatting for a generic x86-64 CPU
+foreground estimation (Germer et al. 2020) in linear light over the matte's extent (the
+bounding box of alpha > 0: the library always passes that crop, so the estimate of a pair has
+one definition), and keeps the photo where alpha is 0 or 1. The result is quantised to 8-bit
+sRGB codes (the precision of the photo) and cached on disk per pair (by both files' sha256:
+the soft pixels' codes in a small .npy), so a large set pays for it once and every process,
+cached or not, gets the same bytes. numba compiles pymatting for a generic x86-64 CPU
 (NUMBA_CPU_NAME, unless set), so the estimate does not depend on the machine either.
 """
 from __future__ import annotations
 
+import io
 import os
 import sys
 from pathlib import Path
@@ -20,7 +23,6 @@ import numpy as np
 
 from dofsynth.color import linear_to_srgb8, srgb8_to_linear
 from dofsynth.files import atomic_write_bytes
-from dofsynth.io import decode_image, encode_png
 
 ESTIMATOR = "pymatting-ml"  # what sample records name; its version is part of the cache key
 CACHE_ENV = "DOFSYNTH_CACHE"
@@ -54,25 +56,30 @@ def estimate(rgb: np.ndarray, alpha: np.ndarray, photo_sha256: str, alpha_sha256
     """The object's linear colour (H, W, 3) float32 for a photo's linear colour and its matte in
     [0, 1]: estimated where 0 < alpha < 1, the photo's elsewhere (8-bit sRGB precision)."""
     soft = (alpha > 0) & (alpha < 1)
-    if not soft.any():
+    n = int(np.count_nonzero(soft))
+    if not n:
         return rgb
-    path = cache_dir() / "foreground" / f"{estimator_id()}-{photo_sha256[:20]}-{alpha_sha256[:20]}.png"
+    # the cache holds the sRGB codes of the soft pixels only (raster order): a small .npy, read
+    # without decoding an image
+    path = cache_dir() / "foreground" / f"{estimator_id()}-{photo_sha256[:20]}-{alpha_sha256[:20]}-{n}.npy"
     codes = None
     if path.is_file():
         try:
-            codes = decode_image(path.read_bytes(), str(path), raw=True)
-        except ValueError:
+            codes = np.load(io.BytesIO(path.read_bytes()), allow_pickle=False)
+        except (OSError, ValueError, EOFError):
             codes = None  # a broken cache file is made again
-        if codes is not None and codes.shape != rgb.shape:
+        if codes is not None and (codes.shape != (n, 3) or codes.dtype != np.uint8):
             codes = None
     if codes is None:
         est = _estimator()(np.ascontiguousarray(rgb, dtype=np.float32), np.ascontiguousarray(alpha, dtype=np.float32))
-        codes = linear_to_srgb8(np.asarray(est, np.float32))
+        codes = linear_to_srgb8(np.asarray(est, np.float32)[soft])
+        buf = io.BytesIO()
+        np.save(buf, codes, allow_pickle=False)
         try:
-            atomic_write_bytes(path, encode_png(codes, compression=1))
+            atomic_write_bytes(path, buf.getvalue())
         except OSError as exc:  # no cache: slower, the same bytes
             print(f"dofsynth: warning: cannot cache estimated foregrounds in {path.parent} ({exc.strerror or exc}); "
                   f"set {CACHE_ENV} to a writable folder", file=sys.stderr)
     out = np.array(rgb, dtype=np.float32, copy=True)
-    out[soft] = srgb8_to_linear(codes)[soft]
+    out[soft] = srgb8_to_linear(codes)
     return out

@@ -8,6 +8,7 @@ the file, so a bad file never becomes a silent wrong sample; every load checks t
 """
 from __future__ import annotations
 
+import os
 from collections import OrderedDict
 from dataclasses import replace
 from pathlib import Path
@@ -25,10 +26,21 @@ from dofsynth.assets.similar import near_duplicate_groups
 from dofsynth.assets.splits import assign_splits
 from dofsynth.color import srgb8_to_linear
 from dofsynth.files import canonical_json, sha256_bytes
+from dofsynth.image import area_halve, premultiply
 from dofsynth.recipe import BUILTIN, AssetSources, Recipe
 from dofsynth.rng import SPLITS
 
 CACHE_BYTES = 256 * 2**20  # decoded pixels kept per process (a 24 MP photo alone is 288 MB)
+CACHE_ENV = "DOFSYNTH_ASSET_CACHE_MIB"  # another bound, MiB, for the processes that get it (0: none)
+
+
+def cache_bytes() -> int:
+    """The pixel cache bound of this process: $DOFSYNTH_ASSET_CACHE_MIB MiB, else CACHE_BYTES."""
+    mib = os.environ.get(CACHE_ENV, "").strip()
+    try:
+        return int(float(mib) * 2**20) if mib else CACHE_BYTES
+    except ValueError:
+        raise ValueError(f"{CACHE_ENV}={mib!r}: expected a number of MiB") from None
 
 
 def _nbytes(value) -> int:
@@ -39,13 +51,14 @@ class AssetLibrary:
     """Sorted background and foreground assets, their split, and loaders (linear float32).
 
     `rules`: the recipe's [assets] table (foreground estimation, flattening of transparent
-    backgrounds). Decoded (and estimated) assets are kept in a per-process LRU cache of at most
-    `cache_bytes` bytes of pixels (an asset larger than that is not kept), so a worker's memory
-    stays flat however many photos there are."""
+    backgrounds). Decoded (and estimated, and pre-scaled) pixels are kept in a per-process LRU
+    cache keyed by the files' sha256 and what was made of them, of at most `cache_bytes` bytes
+    (default: `cache_bytes()`, read by each process; an entry larger than that is not kept),
+    so a worker's memory stays flat however many photos there are."""
 
     def __init__(self, backgrounds: list[Asset], foregrounds: list[Asset], splits: dict[str, str],
                  skipped: list[tuple[str, str]] | None = None, rules: AssetSources | None = None,
-                 cache_bytes: int = CACHE_BYTES, groups: list[list[str]] | None = None):
+                 cache_bytes: int | None = None, groups: list[list[str]] | None = None):
         self.backgrounds = sorted(backgrounds, key=lambda a: a.id)
         self.foregrounds = sorted(foregrounds, key=lambda a: a.id)
         self.splits = dict(splits)
@@ -104,21 +117,27 @@ class AssetLibrary:
         pool = self.backgrounds if kind == "background" else self.foregrounds
         return [a for a in pool if self.splits[a.id] == split]
 
-    def _cached(self, key: str, make):
+    def _cached(self, asset: Asset, what: str, make):
+        """`make()`'s read-only arrays for `asset`, kept in the LRU pixel cache under the asset's
+        file hashes and `what` (e.g. "premul@1"); a file that fails is remembered as bad."""
+        key = f"{asset.sha256}+{asset.alpha_sha256 or ''}:{what}"
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
-        if key in self._bad:  # a bad file stays bad: not decoded again by this process
-            raise AssetError(self._bad[key], key)
+        if asset.id in self._bad:  # a bad file stays bad: not decoded again by this process
+            raise AssetError(self._bad[asset.id], asset.id)
         try:
             value = make()
         except AssetError as exc:
-            self._bad[key] = str(exc)
-            raise AssetError(str(exc), key) from exc
-        if _nbytes(value) > self._cache_bytes:
+            self._bad[asset.id] = str(exc)
+            raise AssetError(str(exc), asset.id) from exc
+        for a in value if isinstance(value, tuple) else (value,):
+            a.setflags(write=False)
+        bound = cache_bytes() if self._cache_bytes is None else self._cache_bytes
+        if _nbytes(value) > bound:
             return value
         self._cache[key] = value
-        while sum(map(_nbytes, self._cache.values())) > self._cache_bytes:
+        while sum(map(_nbytes, self._cache.values())) > bound:
             self._cache.popitem(last=False)
         return value
 
@@ -140,45 +159,64 @@ class AssetLibrary:
                 raw = decode_asset(self._read(asset.path, asset.sha256), asset.path, codes=True)
                 check_size(asset.path, raw.shape[1], raw.shape[0])
                 img = flatten(colour_linear(raw, asset.path), raw, asset.path, self.rules.transparent_background)
-            img = np.ascontiguousarray(img, dtype=np.float32)
-            img.setflags(write=False)
-            return img
-        return self._cached(asset.id, make)
+            return np.ascontiguousarray(img, dtype=np.float32)
+        return self._cached(asset, "linear", make)
 
     def load_foreground(self, asset: Asset) -> tuple[np.ndarray, np.ndarray]:
-        """(linear-light RGB (H, W, 3) float32 straight colour, alpha (H, W) float32), read-only."""
+        """(linear-light RGB (H, W, 3) float32 straight colour, alpha (H, W) float32), read-only:
+        for a photo + matte pair with `estimate_foreground`, the colour estimated inside the
+        extent (`dofsynth.assets.foreground`)."""
+        return self._cached(asset, "linear", lambda: self._foreground(asset, whole=True))
+
+    def premultiplied(self, asset: Asset, level: int = 0) -> np.ndarray:
+        """(h, w, 4) float32 of a foreground's extent: linear colour x alpha, and alpha, read-only;
+        at `level` k > 0 area-halved k times (`dofsynth.image.area_halve`), what an object placed
+        at a small scale is resampled from. Cached by the files' sha256 and the level, so a
+        worker keeps what it places, not whole photos."""
+        if level > 0:
+            return self._cached(asset, f"premul@{level}", lambda: area_halve(self.premultiplied(asset, level - 1)))
+
         def make():
-            if asset.path.startswith("builtin:"):
-                rgb8, a8 = B.foreground_pixels(asset.path.split("/", 1)[1])
-                rgb, alpha = srgb8_to_linear(rgb8), a8.astype(np.float32) / 255
-            else:
-                raw = decode_asset(self._read(asset.path, asset.sha256), asset.path, codes=True)
-                check_size(asset.path, raw.shape[1], raw.shape[0])
-                if asset.alpha_path:
-                    araw = decode_asset(self._read(asset.alpha_path, asset.alpha_sha256), asset.alpha_path, codes=True)
-                    if araw.shape[:2] != raw.shape[:2]:
-                        raise AssetError(f"{asset.alpha_path}: alpha is {araw.shape[1]}x{araw.shape[0]} but "
-                                         f"its foreground {asset.path} is {raw.shape[1]}x{raw.shape[0]}")
-                    alpha, name = alpha_of(araw, asset.alpha_path, False), asset.alpha_path
-                else:
-                    alpha, name = alpha_of(raw, asset.path, True), asset.path
-                if (raw.shape[1], raw.shape[0]) != asset.size:
-                    raise AssetError(f"{asset.path}: is {raw.shape[1]}x{raw.shape[0]}, scanned as {asset.size}")
-                alpha = unit_alpha(alpha)
-                alpha_bbox(alpha, name)
-                alpha = np.clip(alpha, 0.0, 1.0).astype(np.float32)
-                rgb = colour_linear(raw, asset.path)
-                if is_exr(asset.path) and not asset.alpha_path:
-                    # EXR colour is premultiplied by convention: store straight colour
-                    rgb = np.where(alpha[..., None] > 0, rgb / np.maximum(alpha[..., None], 1e-6), 0.0)
-                if asset.alpha_path and self.rules.estimate_foreground:  # the photo's backdrop out of soft edges
-                    rgb = estimate(rgb, alpha, asset.sha256, asset.alpha_sha256)
-            rgb = np.ascontiguousarray(rgb, dtype=np.float32)
-            alpha = np.ascontiguousarray(alpha, dtype=np.float32)
-            rgb.setflags(write=False)
-            alpha.setflags(write=False)
-            return rgb, alpha
-        return self._cached(asset.id, make)
+            rgb, alpha = self._foreground(asset, whole=False)
+            return premultiply(rgb, alpha, (0, 0, alpha.shape[1], alpha.shape[0]))
+        return self._cached(asset, "premul@0", make)
+
+    def _foreground(self, asset: Asset, whole: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The foreground's (straight linear colour, alpha), decoded and checked, not cached:
+        the whole photo, or (`whole=False`) only its extent."""
+        x, y, w, h = asset.extent
+        if asset.path.startswith("builtin:"):
+            rgb8, a8 = B.foreground_pixels(asset.path.split("/", 1)[1])
+            if not whole:
+                rgb8, a8 = rgb8[y:y + h, x:x + w], a8[y:y + h, x:x + w]
+            return srgb8_to_linear(rgb8), a8.astype(np.float32) / 255
+        raw = decode_asset(self._read(asset.path, asset.sha256), asset.path, codes=True)
+        check_size(asset.path, raw.shape[1], raw.shape[0])
+        if asset.alpha_path:
+            araw = decode_asset(self._read(asset.alpha_path, asset.alpha_sha256), asset.alpha_path, codes=True)
+            if araw.shape[:2] != raw.shape[:2]:
+                raise AssetError(f"{asset.alpha_path}: alpha is {araw.shape[1]}x{araw.shape[0]} but "
+                                 f"its foreground {asset.path} is {raw.shape[1]}x{raw.shape[0]}")
+            alpha, name = alpha_of(araw, asset.alpha_path, False), asset.alpha_path
+        else:
+            alpha, name = alpha_of(raw, asset.path, True), asset.path
+        if (raw.shape[1], raw.shape[0]) != asset.size:
+            raise AssetError(f"{asset.path}: is {raw.shape[1]}x{raw.shape[0]}, scanned as {asset.size}")
+        alpha = unit_alpha(alpha)
+        alpha_bbox(alpha, name)
+        alpha = np.clip(alpha, 0.0, 1.0).astype(np.float32)
+        if not whole:
+            raw, alpha = raw[y:y + h, x:x + w], np.ascontiguousarray(alpha[y:y + h, x:x + w])
+        rgb = colour_linear(raw, asset.path)
+        if is_exr(asset.path) and not asset.alpha_path:
+            # EXR colour is premultiplied by convention: store straight colour
+            rgb = np.where(alpha[..., None] > 0, rgb / np.maximum(alpha[..., None], 1e-6), 0.0)
+        if asset.alpha_path and self.rules.estimate_foreground:  # the photo's backdrop out of soft edges
+            box = (slice(y, y + h), slice(x, x + w)) if whole else (slice(None), slice(None))
+            rgb = np.array(rgb, dtype=np.float32)
+            rgb[box] = estimate(np.ascontiguousarray(rgb[box]), np.ascontiguousarray(alpha[box]),
+                                asset.sha256, asset.alpha_sha256)
+        return np.ascontiguousarray(rgb, dtype=np.float32), np.ascontiguousarray(alpha, dtype=np.float32)
 
 
 def _too_small(sc: Scanner, asset: Asset, recipe: Recipe) -> bool:
