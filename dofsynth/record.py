@@ -33,7 +33,8 @@ from dofsynth.image import to_uint8
 from dofsynth.io import decode_exr, decode_image, encode_png_bgr, swap_rb
 
 SCHEMA_VERSION = 2  # 2: assets' colour; objects' anchored, visible and rejected
-RENDERER_ID = "layered-v2"  # v2: highlights blurred as boosted light and mapped back (dofsynth.highlight)
+RENDERER_ID = "layered-v3"  # v2: highlights blurred as boosted light and mapped back (dofsynth.highlight);
+#                             v3: cutouts edge-replicated past the frame edges they reach
 # zlib settings of the PNG members, chosen by measurement at 1024 px (docs/rendering.md):
 # - images (aif, dof): level 1, one fixed Paeth row filter, Huffman-only coding. libpng no longer
 #   tries all five filters per row, and Paeth residuals of photos have few long matches, so

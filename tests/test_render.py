@@ -225,20 +225,30 @@ def test_exact_mode_matches_layered_unless_both_blurred():
     np.testing.assert_allclose(render_planes([opaque(bg, 0.3)], 0.3, 12.0, method="exact"), bg, atol=1e-6)
 
 
-def test_opaque_front_plane_with_varying_disparity_lets_the_border_through():
-    """A full-frame opaque plane that is not the backmost is zero outside the frame: blurred, its
-    border turns semi-transparent and shows the (in-focus) plane behind, as in the exact mode."""
+def test_a_plane_that_reaches_the_frame_edge_goes_on_beyond_it_in_both_modes():
+    """Every plane is edge-replicated past the frame: a full-frame opaque front plane with a
+    varying disparity, blurred, stays opaque at the frame's border (the white plane behind does
+    not show through), as in the exact mode; so does a constant-disparity cutout cut by the
+    frame's bottom edge, while its free top edge fades into what lies behind."""
     g = rng(8)
     h, w = 48, 48
     front = smooth_image(h, w, g)
     ramp = np.tile(np.linspace(0.3, 0.5, w, dtype=np.float32), (h, 1))  # CoC 3 .. 5 px
-    planes = [opaque(np.ones((h, w, 3), np.float32), 0.0), opaque(front, ramp)]
+    white = opaque(np.ones((h, w, 3), np.float32), 0.0)
+    planes = [white, opaque(front, ramp)]
     lay = render_planes(planes, 0.0, 10.0)
     ex = render_planes(planes, 0.0, 10.0, method="exact")
-    assert lay[:, 0].mean() > front[:, 0].mean() + 0.1  # white shows through at the left border
+    alone = render_planes([opaque(front, ramp)], 0.0, 10.0)  # the front plane blurred over nothing
+    np.testing.assert_allclose(lay, alone, atol=1e-5)  # nothing of the white plane anywhere
     assert np.abs(ex - lay).max() < 0.02 and np.abs(ex - lay).mean() < 2e-3
-
-
+    # a black cutout over the lower half, cut by the frame's bottom edge, in front of white
+    a = np.zeros((h, w), np.float32)
+    a[24:, 8:40] = 1.0
+    cut = Plane(np.zeros((h, w, 3), np.float32), a, 0.8)
+    for method in ("layered", "exact"):
+        img = render_planes([white, cut], 0.0, 10.0, method=method)  # c = 8 px on the cutout
+        assert img[-1, 16:32].max() < 0.01, method   # the bottom row stays black: it goes on
+        assert img[26, 16:32].min() > 0.2, method    # its free top edge is blurred into the white
 def test_exact_mode_orientation_and_samples():
     """Triangle bokeh points the same way in both modes, for c > 0 and c < 0; `samples` works."""
     g = rng(9)

@@ -35,7 +35,7 @@ def test_dict_round_trip_is_exact_through_json(many):
         d = s.to_dict()
         back = Scene.from_dict(json.loads(json.dumps(d, sort_keys=True)))
         assert back == s and back.to_dict() == d
-    rec = {**many[0].to_dict(), "schema_version": 2, "renderer": "layered-v2", "dofsynth_version": "0.1.0"}
+    rec = {**many[0].to_dict(), "schema_version": 2, "renderer": "layered-v3", "dofsynth_version": "0.1.0"}
     assert Scene.from_dict(rec) == many[0]
     # a schema-1 record (no colour, anchored, visible, rejected) reads with their defaults
     old = json.loads(json.dumps(many[0].to_dict()))

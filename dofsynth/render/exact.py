@@ -41,9 +41,9 @@ def aperture_samples(aperture: Aperture, max_abs_coc: float, samples: int | None
     return px.astype(np.float32), py.astype(np.float32), wt
 
 
-def _warp(pm, cmap, px, py, backmost, gx, gy):
-    """Sample the (H, W, 4) premultiplied plane where sensor pixels see it for aperture point p."""
-    border = cv2.BORDER_REPLICATE if backmost else cv2.BORDER_CONSTANT
+def _warp(pm, cmap, px, py, gx, gy):
+    """Sample the (H, W, 4) premultiplied plane where sensor pixels see it for aperture point p
+    (edge-replicated beyond the frame, as in the layered renderer)."""
     if np.ndim(cmap) == 0:
         mx, my = gx - px * cmap, gy - py * cmap
     else:
@@ -51,7 +51,7 @@ def _warp(pm, cmap, px, py, backmost, gx, gy):
         for _ in range(FIXED_POINT_ITERATIONS):
             c = cv2.remap(cmap, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             mx, my = gx - px * c, gy - py * c
-    return cv2.remap(pm, mx, my, cv2.INTER_LINEAR, borderMode=border, borderValue=(0, 0, 0, 0))
+    return cv2.remap(pm, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, options) -> np.ndarray:
@@ -76,8 +76,8 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, optio
     acc = np.zeros((H, W, 4), np.float64)
     for x, y, w in zip(px, py, wt):
         comp = np.zeros((H, W, 4), np.float32)
-        for i, (pm, c) in enumerate(prepared):
-            warped = _warp(pm, c, x, y, i == 0, gx, gy)
+        for pm, c in prepared:
+            warped = _warp(pm, c, x, y, gx, gy)
             comp = warped + (1.0 - warped[:, :, 3:4]) * comp
         acc += w * comp
     return np.ascontiguousarray(acc[:, :, :3].transpose(2, 0, 1), dtype=np.float32)

@@ -3,8 +3,9 @@
 `render_layered(planes, focus, max_coc, aperture, options)` returns linear RGB (3, H, W)
 float32. Each plane's premultiplied (colour * alpha, alpha) is blurred with the aperture kernel
 of its signed CoC radius (dofsynth.optics.coc_radius) in pixels, then the blurred
-planes are composited with "over". The backmost plane extends past the frame by edge
-replication; the others are zero outside it.
+planes are composited with "over". Every plane extends past the frame by edge replication: the
+background, and a cutout where it reaches the frame's edge (an object cut by the frame goes on
+beyond it, so its blurred edge does not fade there and show what lies behind).
 
 Constant-disparity planes are convolved exactly (float32 FFT, overlap-save tiles for large
 ones; cv2 for tiny kernels), cropped to the plane's alpha bounding box plus the kernel radius,
@@ -41,8 +42,9 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
     s = support_radius(c)
     if backmost:  # the frame, edge-replicated S px beyond it: its blur covers the frame
         gy0, gy1, gx0, gx1 = -s, H + s, -s, W + s
-    else:
-        gy0, gy1, gx0, gx1 = y0, y1, x0, x1
+    else:  # the alpha box, edge-replicated S px beyond each frame edge it touches
+        gy0, gy1 = (-s if y0 == 0 else y0), (H + s if y1 == H else y1)
+        gx0, gx1 = (-s if x0 == 0 else x0), (W + s if x1 == W else x1)
     h, w = gy1 - gy0, gx1 - gx0
     conv = Convolver(c, aperture, h, w)
     if backmost:  # acc is still black: add the blur straight into it, tile by tile
@@ -58,13 +60,13 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
     # footprint clipped to the frame (the blurs are added straight into acc, tile by tile)
     oy0, ox0 = max(gy0 - s, 0), max(gx0 - s, 0)
     oy1, ox1 = min(gy1 + s, H), min(gx1 + s, W)
-    a_src = np.ascontiguousarray(alpha[gy0:gy1, gx0:gx1], dtype=np.float32)
+    a_src = np.ascontiguousarray(grab(alpha, gy0, gy1, gx0, gx1, True), dtype=np.float32)
     keep = np.zeros((oy1 - oy0, ox1 - ox0), np.float32)
     conv.add_into(copy_tile(a_src), keep, gy0 - s - oy0, gx0 - s - ox0)
     np.subtract(np.float32(1.0), keep, out=keep)
     for ch in range(3):
         acc[ch, oy0:oy1, ox0:ox1] *= keep
-        src = rgb[gy0:gy1, gx0:gx1, ch]
+        src = grab(rgb[:, :, ch], gy0, gy1, gx0, gx1, True)
         conv.add_into(lambda y0, y1, x0, x1, out: np.multiply(src[y0:y1, x0:x1], a_src[y0:y1, x0:x1], out=out),
                       acc[ch], gy0 - s, gx0 - s)
 
@@ -115,8 +117,7 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
 
     Work region: O, the output (the frame for the backmost plane, else the alpha box grown by
     the largest kernel), and E, O grown by that kernel again (the pixels that reach O; outside
-    the frame the colour is edge-replicated for the backmost plane and zero otherwise, the CoC
-    map is always edge-replicated). A map that is a broadcast row or column (a ramp) keeps its
+    the frame colour, alpha and the CoC map are edge-replicated). A map that is a broadcast row or column (a ramp) keeps its
     levels as one row or column."""
     _, H, W = acc.shape
     cm = coc_radius(compact(np.asarray(dmap, dtype=np.float32)), focus, max_coc)
@@ -176,13 +177,13 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
             add_clipped(w_acc, 0, tx0, np.convolve(wsub[0], conv.k.sum(axis=0))[None, :])
         else:
             conv.add_into(copy_tile(wsub), w_acc, ty0, tx0)
-        a_sub = None if one else grab(alpha, fy0, fy1, fx0, fx1, backmost)
+        a_sub = None if one else grab(alpha, fy0, fy1, fx0, fx1, True)
         wa = np.broadcast_to(wsub if one else wsub * a_sub, (y1 - y0, x1 - x0))
         if a_acc is not None:
             conv.add_into(copy_tile(wa), a_acc, ty0, tx0)
         for ch in range(3):  # each channel of the strip read straight into the FFT's buffer
             def tile(a, b, c, d, out, ch=ch):
-                grab(rgb[:, :, ch], fy0 + a, fy0 + b, fx0 + c, fx0 + d, backmost, out)
+                grab(rgb[:, :, ch], fy0 + a, fy0 + b, fx0 + c, fx0 + d, True, out)
                 out *= wa[a:b, c:d]
             conv.add_into(tile, col[ch], ty0, tx0)
     np.maximum(w_acc, 1e-12, out=w_acc)
