@@ -22,7 +22,8 @@ import numpy as np
 from dofsynth.assets import Asset, AssetLibrary
 from dofsynth.image import area_halve, premultiply, pyramid_level, resize
 from dofsynth.render.planes import Plane, alpha_box
-from dofsynth.scene import ObjectParams, Scene, background_disparity, placed_size
+from dofsynth.placement import ObjectParams, placed_size
+from dofsynth.scene import Scene, background_disparity
 
 COVER_THRESHOLD = 0.5
 

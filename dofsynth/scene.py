@@ -13,9 +13,9 @@ f1 >= b_max + min_gap (b_max = b0 for a ramp, 0 when flat), so it is in front of
 background everywhere; the front plane f0 >= f1 + min_gap.
 
 Placement: an object's placed part is its asset's `extent` (the alpha's bounding box); it is
-resized by `scale` (output px per source px, at most `assets.max_upscale`) to `placed_size(...)`
-and its top-left corner is put at integer (x, y) of the output frame (may be negative), keeping
-at least `min_in_frame` of its area inside the frame. A matte cut by its photo's border (a
+resized by `scale` (output px per source px, at most `assets.max_upscale`) to
+`dofsynth.placement.placed_size(...)` and its top-left corner is put at integer (x, y) of the
+output frame (may be negative), keeping at least `min_in_frame` of its area inside the frame. A matte cut by its photo's border (a
 portrait cut at the chest: `Asset.cut`) is placed with each cut side on or beyond the matching
 frame edge (`ObjectParams.anchored`, after the flip); an asset no placement can do that for is
 redrawn and listed in `rejected`. Each object keeps at least `min_visible` of its alpha in
@@ -31,13 +31,11 @@ from typing import Any
 import numpy as np
 
 from dofsynth.assets import Asset, AssetLibrary
-from dofsynth.assets.fit import largest_crop, scale_range
+from dofsynth.assets.fit import largest_crop
 from dofsynth.optics.aperture import APERTURES, Aperture, aperture_from_dict
+from dofsynth.placement import ObjectParams, draw_object, visible_shares
 from dofsynth.recipe import Recipe
 from dofsynth.rng import draw_uniform, sample_key, sample_rng, sample_seed
-
-_PLACE_TRIES = 64
-
 
 @dataclass(frozen=True)
 class AssetRef:
@@ -55,18 +53,6 @@ class BackgroundParams:
     direction: str | None           # "horizontal" | "vertical" | None (flat)
     crop: tuple[int, int, int, int]  # (x, y, w, h) in source pixels, before the flip
     flip: bool                      # horizontal flip after cropping
-
-
-@dataclass(frozen=True)
-class ObjectParams:
-    disparity: float
-    scale: float                    # output px per source px
-    x: int                          # top-left of the placed extent, output px (may be < 0)
-    y: int
-    flip: bool                      # horizontal flip of the extent before placing
-    anchored: tuple[str, ...] = ()  # frame edges the object is cut at (its matte's cut sides, flipped)
-    visible: float = 1.0            # share of its alpha seen in the frame, behind what is in front
-    rejected: tuple[str, ...] = ()  # assets drawn for this object first, which no placement could fit
 
 
 @dataclass(frozen=True)
@@ -146,17 +132,6 @@ def _object(d: dict[str, Any]) -> ObjectParams:
     return ObjectParams(**{**d, "anchored": tuple(d.get("anchored", ())), "rejected": tuple(d.get("rejected", ()))})
 
 
-def placed_size(scale: float, extent_w: int, extent_h: int) -> tuple[int, int]:
-    """(w, h) in output px of an extent resized by `scale` (the renderer uses exactly this)."""
-    return max(1, round(extent_w * scale)), max(1, round(extent_h * scale))
-
-
-def in_frame_share(x: int, y: int, w: int, h: int, frame_w: int, frame_h: int) -> float:
-    vis_w = max(0, min(x + w, frame_w) - max(x, 0))
-    vis_h = max(0, min(y + h, frame_h) - max(y, 0))
-    return vis_w * vis_h / float(w * h)
-
-
 def background_disparity(mode: str, b0: float, b1: float, direction: str | None, h: int, w: int) -> np.ndarray:
     """(H, W) float32 disparity of the background. "flat": b0 everywhere (0 in sampled scenes);
     "ramp" + "horizontal": b0 at the left pixel column, linear to b1 at the right column;
@@ -184,95 +159,7 @@ def _ref(asset: Asset, recipe: Recipe, library: AssetLibrary) -> AssetRef:
     return AssetRef(id=asset.id, path=path, sha256=asset.sha256, colour=library.colour(asset))
 
 
-_SWAP = {"left": "right", "right": "left", "top": "top", "bottom": "bottom"}
-VISIBLE_SIDE = 128  # occlusion is estimated on the frame reduced to this long side (alpha thumbnails)
-_OBJECT_TRIES = 8   # assets drawn per object before the last one is taken as it is
 _VISIBLE_TRIES = 32  # object draws for both to stay visible (a new middle object every 8)
-
-
-def _axis(size: int, frame: int, m: float, low_cut: bool, high_cut: bool) -> tuple[int, int]:
-    """Range of an object's top-left coordinate along one axis: at least m of it inside, its
-    cut sides on or beyond the frame's edges."""
-    lo, hi = -int((1 - m) * size), frame - int(np.ceil(m * size))
-    if low_cut:
-        hi = min(hi, 0)
-    if high_cut:
-        lo = max(lo, frame - size)
-    return lo, hi
-
-
-def _place(rng: np.random.Generator, asset: Asset, disparity: float, recipe: Recipe) -> ObjectParams | None:
-    """Draw flip, scale and position of one object; None when no placement can keep its cut
-    sides on the frame's edges at the recipe's scales."""
-    H, W = recipe.frame
-    rules = recipe.scene.foreground
-    flip = bool(rng.random() < rules.flip_share)
-    anchored = tuple(sorted(_SWAP[c] if flip else c for c in asset.cut))
-    lo, hi = scale_range(asset, recipe, anchored)
-    if lo > hi:
-        return None
-    scale = draw_uniform(rng, lo, hi)
-    _, _, ew, eh = asset.extent
-    w, h = placed_size(scale, ew, eh)
-    m = rules.min_in_frame
-    (x_lo, x_hi), (y_lo, y_hi) = (_axis(w, W, m, "left" in anchored, "right" in anchored),
-                                  _axis(h, H, m, "top" in anchored, "bottom" in anchored))
-    if x_lo > x_hi or y_lo > y_hi:
-        return None
-    for _ in range(_PLACE_TRIES):
-        x, y = int(rng.integers(x_lo, x_hi + 1)), int(rng.integers(y_lo, y_hi + 1))
-        if in_frame_share(x, y, w, h, W, H) >= m:
-            return ObjectParams(disparity=float(disparity), scale=float(scale), x=x, y=y, flip=flip, anchored=anchored)
-    return None
-
-
-def _object_draw(rng, pool: list[Asset], disparity: float, recipe: Recipe, exclude=()):
-    """(asset, params) of an object: assets drawn from `pool` (not `exclude`) until one can be
-    placed; those that could not are listed in `params.rejected`."""
-    rejected: list[str] = []
-    for attempt in range(_OBJECT_TRIES):
-        candidates = [a for a in pool if a.id not in exclude and a.id not in rejected] or pool
-        asset = candidates[int(rng.integers(len(candidates)))]
-        params = _place(rng, asset, disparity, recipe)
-        if params is not None:
-            return asset, replace(params, rejected=tuple(rejected))
-        rejected.append(asset.id)
-    raise ValueError(f"no foreground of the split could be placed with its cut sides on the frame's edges after "
-                     f"{_OBJECT_TRIES} draws ({', '.join(rejected)}); widen scene.foreground.scale or raise "
-                     "assets.max_upscale")
-
-
-def _alpha_on_frame(asset: Asset, p: ObjectParams, frame: tuple[int, int]) -> tuple[np.ndarray, int]:
-    """(uint8 alpha on the frame reduced to VISIBLE_SIDE, the object's whole alpha mass at that
-    scale), from the asset's thumbnail (its bbox when it has none): integer arithmetic only."""
-    H, W = frame
-    q = VISIBLE_SIDE / max(H, W)
-    FH, FW = max(1, round(H * q)), max(1, round(W * q))
-    _, _, ew, eh = asset.extent
-    w, h = placed_size(p.scale, ew, eh)
-    tw, th = max(1, round(w * q)), max(1, round(h * q))
-    thumb = asset.thumb if asset.thumb is not None else np.full((1, 1), 255, np.uint8)
-    if p.flip:
-        thumb = thumb[:, ::-1]
-    small = thumb[(np.arange(th) * thumb.shape[0]) // th][:, (np.arange(tw) * thumb.shape[1]) // tw]
-    out = np.zeros((FH, FW), np.uint8)
-    x0, y0 = round(p.x * q), round(p.y * q)
-    cx0, cy0, cx1, cy1 = max(x0, 0), max(y0, 0), min(x0 + tw, FW), min(y0 + th, FH)
-    if cx1 > cx0 and cy1 > cy0:
-        out[cy0:cy1, cx0:cx1] = small[cy0 - y0:cy1 - y0, cx0 - x0:cx1 - x0]
-    return out, int(small.astype(np.int64).sum())
-
-
-def visible_shares(middle: tuple[Asset, ObjectParams], front: tuple[Asset, ObjectParams],
-                   frame: tuple[int, int]) -> tuple[float, float]:
-    """(middle, front): the share of each object's alpha seen in the frame, the middle one
-    behind the front one (on the frame reduced to VISIBLE_SIDE px)."""
-    am, mass_m = _alpha_on_frame(*middle, frame)
-    af, mass_f = _alpha_on_frame(*front, frame)
-    seen_m = int((am.astype(np.int64) * (255 - af.astype(np.int64))).sum())
-    return seen_m / max(255 * mass_m, 1), int(af.astype(np.int64).sum()) / max(mass_f, 1)
-
-
 _FOCUS_TRIES = 32
 
 
@@ -350,8 +237,8 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int, 
     best = None
     for attempt in range(_VISIBLE_TRIES):
         if attempt % 8 == 0:
-            middle_asset, middle = _object_draw(rng, fgs, f1, recipe)
-        front_asset, front = _object_draw(rng, fgs, f0, recipe, exclude={middle_asset.id})
+            middle_asset, middle = draw_object(rng, fgs, f1, recipe)
+        front_asset, front = draw_object(rng, fgs, f0, recipe, exclude={middle_asset.id})
         seen = visible_shares((middle_asset, middle), (front_asset, front), (H, W))
         if best is None or min(seen) > min(best[-1]):
             best = (middle_asset, middle, front_asset, front, seen)

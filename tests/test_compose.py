@@ -8,7 +8,8 @@ from dofsynth.compose import place_foreground, scene_layers
 from dofsynth.image import resize
 from dofsynth.recipe import load_recipe
 from dofsynth.render.planes import validate_planes
-from dofsynth.scene import ObjectParams, background_disparity, placed_size, sample_scene
+from dofsynth.placement import ObjectParams, placed_size
+from dofsynth.scene import background_disparity, sample_scene
 
 
 

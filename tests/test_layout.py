@@ -11,7 +11,7 @@ PKG = Path(__file__).resolve().parents[1] / "dofsynth"
 # and earlier ones only.
 STAGES = ["dofsynth", "dofsynth.config", "dofsynth.files", "dofsynth.rng", "dofsynth.color", "dofsynth.highlight",
           "dofsynth.image",
-          "dofsynth.io", "dofsynth.optics", "dofsynth.recipe", "dofsynth.assets", "dofsynth.scene",
+          "dofsynth.io", "dofsynth.optics", "dofsynth.recipe", "dofsynth.assets", "dofsynth.placement", "dofsynth.scene",
           "dofsynth.render", "dofsynth.compose", "dofsynth.record", "dofsynth.sample", "dofsynth.shards",
           "dofsynth.manifest", "dofsynth.locks", "dofsynth.generate", "dofsynth.qa", "dofsynth.train",
           "dofsynth.commands", "dofsynth.cli", "dofsynth.__main__"]

@@ -11,7 +11,8 @@ from dofsynth.assets.decode import cut_sides
 from dofsynth.compose import scene_layers
 from dofsynth.config import ConfigError
 from dofsynth.recipe import load_recipe
-from dofsynth.scene import placed_size, sample_scene
+from dofsynth.placement import placed_size
+from dofsynth.scene import sample_scene
 
 from conftest import noise_rgb, write_png
 

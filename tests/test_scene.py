@@ -6,7 +6,8 @@ import pytest
 from dofsynth.assets import build_library
 from dofsynth.recipe import load_recipe
 from dofsynth.rng import SPLIT_ID
-from dofsynth.scene import Scene, in_frame_share, placed_size, sample_scene
+from dofsynth.placement import in_frame_share, placed_size
+from dofsynth.scene import Scene, sample_scene
 
 
 @pytest.fixture(scope="module")
