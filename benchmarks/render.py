@@ -1,6 +1,7 @@
 """Benchmark of render_planes on one core: a three-plane 1024x1024 scene, max CoC 32 px; and,
-with --generation, where one generated sample's time goes (scene, compose, boost, render,
-encoding, tar write) at the sizes given.
+with --generation, where one generated sample's time goes (scene, compose, highlight boost and
+its inverse, render, encoding, tar write) at the sizes given, each stage without the stages it
+calls.
 
 Scene: an opaque background with a sloped disparity ramp (0.05 at the top to 0.35 at the
 bottom), two soft-edged cutouts at disparity 0.5 and 0.85 (discs of radius 220 and 180 px with
@@ -84,7 +85,8 @@ def timed(fn, repeat):
 
 # (stage, module whose name is wrapped, name): the names as dofsynth.sample and the worker call them
 STAGES = (("scene", "dofsynth.generate.worker", "sample_scene"), ("compose", "dofsynth.sample", "scene_layers"),
-          ("boost", "dofsynth.sample", "highlight_boost"), ("render", "dofsynth.sample", "render_planes"),
+          ("highlight boost, inverse", "dofsynth.sample", "boost"),
+          ("highlight boost, inverse", "dofsynth.sample", "unboost"), ("render", "dofsynth.sample", "render_planes"),
           ("encode aif+dof", "dofsynth.sample", "encode_srgb_png_rows"),
           ("encode aif+dof", "dofsynth.sample", "encode_srgb_png_planar"),  # dof.N.png (planar render)
           ("encode aif+dof", "dofsynth.sample", "encode_png8"),
@@ -102,20 +104,29 @@ def generation_stages(sizes, samples: int) -> None:
     from dofsynth.shards import write_shard
 
     acc: dict[str, list[float]] = {}
+    active: list[str] = []  # the stages being timed, innermost last: a stage's time excludes its inner ones
 
     def wrap(stage, module, name):
         mod = importlib.import_module(module)
         fn = getattr(mod, name, None)
-        if fn is None or getattr(fn, "_timed", False):
+        if fn is None:
+            raise SystemExit(f"benchmarks/render.py: {module}.{name} is gone; update STAGES")
+        if getattr(fn, "_timed", False):
             return
 
         def timed_fn(*a, **k):
             t0, c0 = time.perf_counter(), time.process_time()
+            active.append(stage)
             try:
                 return fn(*a, **k)
             finally:
+                active.pop()
+                dw, dc = time.perf_counter() - t0, time.process_time() - c0
                 w, c = acc.get(stage, (0.0, 0.0))
-                acc[stage] = [w + time.perf_counter() - t0, c + time.process_time() - c0]
+                acc[stage] = [w + dw, c + dc]
+                if active:  # the outer stage did not spend this time itself
+                    w, c = acc.get(active[-1], (0.0, 0.0))
+                    acc[active[-1]] = [w - dw, c - dc]
 
         timed_fn._timed = True
         setattr(mod, name, timed_fn)
