@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from dofsynth.assets import Asset, AssetLibrary
-from dofsynth.image import area_halve, premultiply, pyramid_level, resize
+from dofsynth.image import pyramid_level, resize
 from dofsynth.render.planes import Plane, alpha_box
 from dofsynth.placement import ObjectParams, placed_size
 from dofsynth.scene import Scene, background_disparity
@@ -82,20 +82,6 @@ def lazy_zeros(shape) -> np.ndarray:
     if hasattr(mmap, "MADV_HUGEPAGE"):  # as numpy does for its own large arrays: 2 MiB pages
         buf.madvise(mmap.MADV_HUGEPAGE)
     return np.frombuffer(buf, np.float32, count=count).reshape(shape)
-
-
-def place_foreground(rgb: np.ndarray, alpha: np.ndarray, extent, params: ObjectParams,
-                     h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """Crop the asset to `extent`, flip, resize premultiplied by `params.scale` and put its top-left
-    at (params.x, params.y) of an (h, w) frame. Returns straight colour (H, W, 3) and alpha (H, W),
-    both zero outside the object. The same pixels as `scene_layers` makes from the library's
-    cached pyramid (`AssetLibrary.premultiplied`)."""
-    _, _, ew, eh = (int(v) for v in extent)
-    size = placed_size(params.scale, ew, eh)
-    premul = premultiply(rgb, alpha, extent)
-    for _ in range(pyramid_level((ew, eh), size)):
-        premul = area_halve(premul)
-    return place_premultiplied(premul, size, params, h, w)
 
 
 def place_premultiplied(premul: np.ndarray, size: tuple[int, int], params: ObjectParams,

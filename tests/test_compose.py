@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from dofsynth.assets import build_library
-from dofsynth.compose import place_foreground, scene_layers
+from dofsynth.compose import place_premultiplied, scene_layers
+from dofsynth.image import area_halve, premultiply, pyramid_level
 from dofsynth.image import resize
 from dofsynth.recipe import load_recipe
 from dofsynth.render.planes import validate_planes
@@ -91,6 +92,17 @@ def test_objects_are_zero_outside_their_placed_rectangle(layers_of, smoke_librar
             mask = np.zeros(s.size, bool)
             mask[max(params.y, 0):max(params.y + h, 0), max(params.x, 0):max(params.x + w, 0)] = True
             assert (p.alpha[~mask] == 0).all() and (p.rgb[~mask] == 0).all()
+
+
+def place_foreground(rgb, alpha, extent, params, h, w):
+    """An object placed from its whole asset by the public pieces: premultiply its extent, halve
+    down to the pyramid level of its placed size, place (what scene_layers does from the cache)."""
+    _, _, ew, eh = extent
+    size = placed_size(params.scale, ew, eh)
+    premul = premultiply(rgb, alpha, extent)
+    for _ in range(pyramid_level((ew, eh), size)):
+        premul = area_halve(premul)
+    return place_premultiplied(premul, size, params, h, w)
 
 
 def test_resampling_is_premultiplied_no_fringe_from_the_transparent_surround():
@@ -188,9 +200,9 @@ def test_aif_rows_are_the_aif(layers_of):
 
 def test_small_placements_resample_from_the_cached_pyramid_with_the_same_pixels(demo_recipe, monkeypatch):
     """scene_layers takes each object from the library's cached premultiplied pyramid
-    (AssetLibrary.premultiplied): the same pixels as place_foreground from the whole asset, the
+    (AssetLibrary.premultiplied): the same pixels as placing from the whole asset, the
     level that is still at least the placed size, and cached by file hash and level."""
-    from dofsynth.image import halved_size, pyramid_level
+    from dofsynth.image import halved_size
 
     assert pyramid_level((400, 300), (400, 300)) == 0 and pyramid_level((400, 300), (500, 100)) == 0
     assert pyramid_level((400, 300), (200, 150)) == 1 and pyramid_level((400, 300), (100, 74)) == 2 and pyramid_level((400, 300), (101, 74)) == 1

@@ -40,10 +40,6 @@ def perceptual_hash(data: bytes, path: str) -> int:
     return hash_grey(grey)
 
 
-def hamming(a: int, b: int) -> int:
-    return (a ^ b).bit_count()
-
-
 def near_duplicate_groups(hashes: dict[str, int], max_distance: int = MAX_DISTANCE) -> list[list[str]]:
     """Groups (sorted lists of 2 or more ids, sorted by their first id) of the ids whose hashes
     are linked by chains of pairs at most `max_distance` bits apart (all pairs, in blocks)."""
