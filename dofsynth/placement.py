@@ -42,7 +42,7 @@ def in_frame_share(x: int, y: int, w: int, h: int, frame_w: int, frame_h: int) -
 
 _SWAP = {"left": "right", "right": "left", "top": "top", "bottom": "bottom"}
 VISIBLE_SIDE = 128  # occlusion is estimated on the frame reduced to this long side (alpha thumbnails)
-_OBJECT_TRIES = 8   # assets drawn per object before the last one is taken as it is
+_OBJECT_TRIES = 8   # assets drawn per object before giving up (an error naming them)
 
 
 def _axis(size: int, frame: int, m: float, low_cut: bool, high_cut: bool) -> tuple[int, int]:
