@@ -54,37 +54,32 @@ from dofsynth.recipe import recipe_from_text  # noqa: E402
 TARGET_MIB = 1536
 
 
-def bench_recipe(base_text: str, size: int, samples: int, shard_size: int = 1):
-    """The base recipe at `size` px with built-in assets, max CoC scaled, `samples` train only."""
-    t = base_text
-    t = re.sub(r"(?m)^size = \d+", f"size = {size}", t)
+def _at_size(text: str, name: str, size: int, samples: int, shard_size: int, coc_size: int, max_upscale: float):
+    """A recipe's text at `size` px, `samples` train samples only, max CoC scaled from the
+    recipe's own `coc_size` px, assets magnified up to `max_upscale` (a benchmark, not a data set)."""
+    t = re.sub(r"(?m)^size = \d+", f"size = {size}", text)
     t = re.sub(r"(?m)^shard_size = \d+", f"shard_size = {shard_size}", t)
     t = re.sub(r"(?m)^samples = \{[^}]*\}", f"samples = {{ train = {samples}, test = 0 }}", t)
-    t = re.sub(r'(?m)^(backgrounds|foregrounds) = "[^"]*"', r'\1 = "builtin"', t)
+    t = re.sub(r"(?m)^max_upscale = .*$", "", t).replace("[assets]\n", f"[assets]\nmax_upscale = {max_upscale}\n", 1)
+    t = re.sub(r"(?m)^max_coc = \[([\d.]+), ([\d.]+)\]",
+               lambda m: f"max_coc = [{float(m.group(1)) * size / coc_size}, {float(m.group(2)) * size / coc_size}]", t)
+    return recipe_from_text(t, f"{name}-{size}.toml", ROOT / "recipes")
+
+
+def bench_recipe(base_text: str, size: int, samples: int, shard_size: int = 1):
+    """The base recipe (max CoC given at 1024 px) at `size` px with built-in assets, `samples`
+    train only. The built-in photos are small: magnified up to 64x at large sizes."""
+    t = re.sub(r'(?m)^(backgrounds|foregrounds) = "[^"]*"', r'\1 = "builtin"', base_text)
     t = re.sub(r"(?m)^manifest = .*$", "", t)
-    # the built-in assets are small photos: magnified at large sizes (a benchmark, not a data set)
-    t = re.sub(r"(?m)^max_upscale = .*$", "", t).replace("[assets]\n", "[assets]\nmax_upscale = 64.0\n", 1)
-
-    def scale(m):
-        lo, hi = (float(x) * size / 1024 for x in m.group(1, 2))
-        return f"max_coc = [{lo}, {hi}]"
-
-    t = re.sub(r"(?m)^max_coc = \[([\d.]+), ([\d.]+)\]", scale, t)
-    return recipe_from_text(t, f"bench-{size}.toml", ROOT / "recipes")
+    return _at_size(t, "bench", size, samples, shard_size, 1024, 64.0)
 
 
 def real_recipe(size: int, samples: int, shard_size: int = 1):
-    """recipes/shared-assets.toml (the real photos and mattes in ../shared/assets) at `size` px,
-    max CoC scaled from its 512 px, `samples` train only. Its Kodak backgrounds are 768x512, so
-    the benchmark lets them be magnified (assets.max_upscale = 2): a benchmark, not a data set."""
-    t = (ROOT / "recipes" / "shared-assets.toml").read_text(encoding="utf-8")
-    t = re.sub(r"(?m)^size = \d+", f"size = {size}", t)
-    t = re.sub(r"(?m)^shard_size = \d+", f"shard_size = {shard_size}", t)
-    t = re.sub(r"(?m)^samples = \{[^}]*\}", f"samples = {{ train = {samples}, test = 0 }}", t)
-    t = re.sub(r"(?m)^max_upscale = .*$", "", t).replace("[assets]\n", "[assets]\nmax_upscale = 2.0\n", 1)
-    t = re.sub(r"(?m)^max_coc = \[([\d.]+), ([\d.]+)\]",
-               lambda m: f"max_coc = [{float(m.group(1)) * size / 512}, {float(m.group(2)) * size / 512}]", t)
-    return recipe_from_text(t, f"bench-real-{size}.toml", ROOT / "recipes")
+    """recipes/shared-assets.toml (the real photos and mattes in ../shared/assets; max CoC given
+    at 512 px) at `size` px, `samples` train only. Its Kodak backgrounds are 768x512, so they may
+    be magnified up to 2x."""
+    text = (ROOT / "recipes" / "shared-assets.toml").read_text(encoding="utf-8")
+    return _at_size(text, "bench-real", size, samples, shard_size, 512, 2.0)
 
 
 def io_floor(recipe, n: int, folder: Path) -> float:

@@ -15,12 +15,13 @@ background everywhere; the front plane f0 >= f1 + min_gap.
 Placement: an object's placed part is its asset's `extent` (the alpha's bounding box); it is
 resized by `scale` (output px per source px, at most `assets.max_upscale`) to
 `dofsynth.placement.placed_size(...)` and its top-left corner is put at integer (x, y) of the
-output frame (may be negative), keeping at least `min_in_frame` of its area inside the frame. A matte cut by its photo's border (a
-portrait cut at the chest: `Asset.cut`) is placed with each cut side on or beyond the matching
-frame edge (`ObjectParams.anchored`, after the flip); an asset no placement can do that for is
-redrawn and listed in `rejected`. Each object keeps at least `min_visible` of its alpha in
-view, the middle one behind the front one (`visible`, estimated on 128 px thumbnails). Focus
-targets of a scene lie at least `focus.min_separation` apart in disparity.
+output frame (may be negative), keeping at least `min_in_frame` of its area inside the frame.
+A matte cut by its photo's border (a portrait cut at the chest: `Asset.cut`) is placed with
+each cut side on or beyond the matching frame edge (`ObjectParams.anchored`, after the flip);
+an asset no placement can do that for is redrawn and listed in `rejected`. Each object keeps
+at least `min_visible` of its alpha in view, the middle one behind the front one (`visible`,
+estimated on 128 px thumbnails). Focus targets of a scene lie at least
+`focus.min_separation` apart in disparity.
 """
 from __future__ import annotations
 

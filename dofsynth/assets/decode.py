@@ -172,22 +172,30 @@ def unit_alpha(a: np.ndarray) -> np.ndarray:
 FLATTEN_ONTO = {"black": 0.0, "grey": srgb_to_linear(np.float32(0.5)).item(), "white": 1.0}
 
 
-def flatten(rgb: np.ndarray, img: np.ndarray, path: str, policy: str) -> np.ndarray:
-    """A background's colour with its transparency dealt with: an image without an alpha
-    channel, or whose alpha is 1 everywhere, as it is; else refused (`policy` "bad": it would
-    show whatever its transparent pixels hold) or composited onto black, grey or white."""
+def background_alpha(img: np.ndarray, path: str, policy: str) -> np.ndarray | None:
+    """A background's alpha in [0, 1] where it has transparent pixels, None where it has none
+    (no alpha channel, or alpha 1 everywhere); with `policy` "bad" such a background is refused
+    (it would show whatever its transparent pixels hold)."""
     c = img.shape[2]
     if c not in (2, 4):
-        return rgb
+        return None
     a = unit_alpha(img[:, :, c - 1])
     clear = a < 1
     if not clear.any():
-        return rgb
+        return None
     if policy == "bad":
         raise AssetError(f"{path}: a background with transparent pixels ({clear.mean():.1%} of it has alpha < 1); "
                          "make it opaque, or set assets.transparent_background to black, grey or white to flatten it")
-    a = np.clip(a, 0.0, 1.0)[..., None]
-    return (rgb * a + np.float32(FLATTEN_ONTO[policy]) * (1 - a)).astype(np.float32)
+    return np.clip(a, 0.0, 1.0)
+
+
+def flatten(rgb: np.ndarray, img: np.ndarray, path: str, policy: str) -> np.ndarray:
+    """A background's colour with its transparency dealt with (`background_alpha`): as it is
+    when opaque, else composited onto black, grey or white (`policy`)."""
+    a = background_alpha(img, path, policy)
+    if a is None:
+        return rgb
+    return (rgb * a[..., None] + np.float32(FLATTEN_ONTO[policy]) * (1 - a[..., None])).astype(np.float32)
 
 
 def colour_linear(img: np.ndarray, path: str) -> np.ndarray:

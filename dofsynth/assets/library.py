@@ -212,10 +212,13 @@ class AssetLibrary:
             # EXR colour is premultiplied by convention: store straight colour
             rgb = np.where(alpha[..., None] > 0, rgb / np.maximum(alpha[..., None], 1e-6), 0.0)
         if asset.alpha_path and self.rules.estimate_foreground:  # the photo's backdrop out of soft edges
-            box = (slice(y, y + h), slice(x, x + w)) if whole else (slice(None), slice(None))
-            rgb = np.array(rgb, dtype=np.float32)
-            rgb[box] = estimate(np.ascontiguousarray(rgb[box]), np.ascontiguousarray(alpha[box]),
-                                asset.sha256, asset.alpha_sha256)
+            if whole:  # estimated over the extent, as for the extent alone
+                rgb = np.array(rgb, dtype=np.float32)
+                rgb[y:y + h, x:x + w] = estimate(np.ascontiguousarray(rgb[y:y + h, x:x + w]),
+                                                 np.ascontiguousarray(alpha[y:y + h, x:x + w]),
+                                                 asset.sha256, asset.alpha_sha256)
+            else:
+                rgb = estimate(rgb, alpha, asset.sha256, asset.alpha_sha256)
         return np.ascontiguousarray(rgb, dtype=np.float32), np.ascontiguousarray(alpha, dtype=np.float32)
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from dofsynth.assets.decode import (Asset, AssetError, alpha_bbox, alpha_of, area_thumb, check_size, cut_sides,
-                                    decode_asset, flatten, image_header, unit_alpha)
+                                    background_alpha, decode_asset, image_header, unit_alpha)
 from dofsynth.assets.similar import perceptual_hash
 from dofsynth.files import sha256_bytes
 from dofsynth.io import IMAGE_SUFFIXES
@@ -124,7 +124,7 @@ class Scanner:
             data = self.read(p)
             size, img, _ = self.probe(p, data)
             if img is not None:
-                flatten(img[..., :3], img, str(p), self.rules.transparent_background)  # refuses if it must
+                background_alpha(img, str(p), self.rules.transparent_background)  # refuses if it must
             phash = perceptual_hash(data, str(p))
         except AssetError as exc:
             return self.bad(str(p), str(exc))
