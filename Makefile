@@ -15,14 +15,14 @@ $(PY):
 
 # torch is pinned and installed first: on these machines torch==2.13.0 is a local CPU wheel,
 # while an unpinned torch would pull a CUDA build of several GB.
-$(STAMP): pyproject.toml | $(PY)
+$(STAMP): pyproject.toml setup.py | $(PY)
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e .
+	$(PY) -m pip install -q -e '.[train]'
 	touch $(STAMP)
 
 # The test suite also needs pytest and Ray (the distributed-executor tests start a local cluster).
 $(TSTAMP): $(STAMP)
-	$(PY) -m pip install -q -e '.[test,ray]'
+	$(PY) -m pip install -q -e '.[train,test,ray]'
 	touch $(TSTAMP)
 
 install: $(STAMP)

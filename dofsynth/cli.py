@@ -13,7 +13,7 @@ import sys
 import threading
 
 from dofsynth import __version__
-from dofsynth import commands
+from dofsynth import commands, progress
 
 
 class Terminated(BaseException):
@@ -41,7 +41,40 @@ def build_parser() -> argparse.ArgumentParser:
         module = importlib.import_module(f"dofsynth.commands.{info.name}")
         if hasattr(module, "register"):
             module.register(sub)
+    for p in _leaf_parsers(sub):
+        _add_common(p)
     return parser
+
+
+def _leaf_parsers(action) -> list[argparse.ArgumentParser]:
+    """Every parser under a subparsers action that parses a command's own options."""
+    out = []
+    for p in dict.fromkeys(action.choices.values()):
+        subs = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
+        out += _leaf_parsers(subs[0]) if subs else [p]
+    return out
+
+
+def _add_common(p: argparse.ArgumentParser) -> None:
+    """The options every command has, with one meaning everywhere (dofsynth.progress)."""
+    g = p.add_argument_group("output")
+    loud = g.add_mutually_exclusive_group()
+    loud.add_argument("-q", "--quiet", action="store_true",
+                      help="no progress bars and no summaries (errors still print)")
+    loud.add_argument("-v", "--verbose", action="store_true", help="more detail, e.g. a line per finished shard")
+
+
+# The optional dependencies some commands need, and the extra that installs them.
+EXTRAS = {"torch": "train", "webdataset": "train", "ray": "ray"}
+
+
+def _missing_extra(exc: ImportError) -> str | None:
+    """One line naming the `pip install` that provides a missing optional module, else None."""
+    top = (exc.name or "").split(".")[0]
+    if top not in EXTRAS:
+        return None
+    return (f"this command needs {top}, which the base install leaves out: "
+            f"pip install 'dofsynth[{EXTRAS[top]}]'")
 
 
 def _os_error(exc: OSError) -> str:
@@ -60,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    progress.set_verbosity(args.quiet, args.verbose)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _terminate)
     hint = getattr(args, "resume_hint", None)
@@ -69,6 +103,12 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError) as exc:
         print(f"{name}: error: {exc}", file=sys.stderr)
+        return 2
+    except ImportError as exc:
+        line = _missing_extra(exc)
+        if line is None:
+            raise
+        print(f"{name}: error: {line}", file=sys.stderr)
         return 2
     except OSError as exc:
         print(f"{name}: error: {_os_error(exc)}{again}", file=sys.stderr)

@@ -105,9 +105,11 @@ def encode_png(img: np.ndarray, compression: int = 3) -> bytes:
     return encode_png_bgr(swap_rb(arr) if arr.ndim == 3 else arr, (cv2.IMWRITE_PNG_COMPRESSION, compression))
 
 
-def encode_exr(image: np.ndarray, channel: str = "Z") -> bytes:
+def encode_exr(image: np.ndarray, channel: str = "Y", attributes: dict | None = None) -> bytes:
     """Encode float32 pixels as a ZIP-compressed (lossless) EXR: an (H, W) map as one channel
-    named `channel` (depth: "Z"), an (H, W, 3|4) image as channels R, G, B(, A)."""
+    named `channel`, an (H, W, 3|4) image as channels R, G, B(, A); `attributes` (str or float
+    values) go into the header. (OpenEXR's "Z" means distance from the camera: not for
+    disparity, see dofsynth.record.encode_depth.)"""
     arr = np.asarray(image, dtype=np.float32)
     if arr.ndim == 2:
         chans = {channel: np.ascontiguousarray(arr)}
@@ -116,7 +118,7 @@ def encode_exr(image: np.ndarray, channel: str = "Z") -> bytes:
         chans = {k: np.ascontiguousarray(arr[:, :, i]) for i, k in enumerate("RGBA"[: arr.shape[2]])}
     else:
         raise ValueError(f"EXR pixels must be (H, W) or (H, W, 3|4), got shape {arr.shape}")
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **(attributes or {})}
     out = io.BytesIO()
     OpenEXR.File(header, chans).write(out)
     return out.getvalue()
@@ -129,14 +131,17 @@ def _exr_channels(data, name: str) -> dict:
         raise ImageReadError(f"{name}: not a readable EXR file ({exc})") from exc
 
 
-def decode_exr(data: bytes | io.IOBase, name: str = "<bytes>", channels: str | None = "Z") -> np.ndarray:
-    """Decode EXR bytes. With `channels="Z"` return that channel as float32 (H, W); with None,
-    all channels as (H, W, C) float32 in R, G, B, A order where present."""
+def decode_exr(data: bytes | io.IOBase, name: str = "<bytes>", channels: str | tuple | None = None) -> np.ndarray:
+    """Decode EXR bytes. With `channels` a name (or a tuple of names: the first present) return
+    that channel as float32 (H, W); with None, all channels as (H, W, C) float32 in R, G, B, A
+    order where present."""
     chans = _exr_channels(data, name)
     if channels is not None:
-        if channels not in chans:
-            raise ImageReadError(f"{name}: EXR has no channel {channels!r} (has {sorted(chans)})")
-        return np.ascontiguousarray(chans[channels].pixels, dtype=np.float32)
+        names = (channels,) if isinstance(channels, str) else tuple(channels)
+        for c in names:
+            if c in chans:
+                return np.ascontiguousarray(chans[c].pixels, dtype=np.float32)
+        raise ImageReadError(f"{name}: EXR has no channel {' or '.join(map(repr, names))} (has {sorted(chans)})")
     if len(chans) == 1:
         px = next(iter(chans.values())).pixels
         return np.ascontiguousarray(px if px.ndim == 3 else px[:, :, None], dtype=np.float32)
@@ -145,26 +150,30 @@ def decode_exr(data: bytes | io.IOBase, name: str = "<bytes>", channels: str | N
     return np.ascontiguousarray(np.stack(planes, axis=-1), dtype=np.float32)
 
 
-def read_exr(path: str | os.PathLike, channels: str | None = "Z") -> np.ndarray:
+def read_exr(path: str | os.PathLike, channels: str | tuple | None = None) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
     return decode_exr(path.read_bytes(), str(path), channels)
 
 
+DEPTH_CHANNELS = ("disparity", "Z")  # dofsynth's depth member (schema >= 3), then older shards' and others'
+
+
 def read_depth(path: str | os.PathLike) -> np.ndarray:
-    """Read a disparity map as float32 (H, W): an EXR's 'Z' or only channel, or an 8/16-bit grey
-    image scaled to [0, 1] (grey stored as RGB is taken if its channels are equal). A colour
-    image is refused (ImageReadError): it is not a depth map."""
+    """Read a disparity map as float32 (H, W): an EXR's 'disparity', 'Z' or only channel, or an
+    8/16-bit grey image scaled to [0, 1] (grey stored as RGB is taken if its channels are
+    equal). A colour image is refused (ImageReadError): it is not a depth map."""
     path = Path(path)
     if path.suffix.lower() == ".exr":
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such file")
         f = _exr_channels(path.read_bytes(), str(path))
-        px = f["Z"].pixels if "Z" in f else next(iter(f.values())).pixels if len(f) == 1 else None
+        name = next((c for c in DEPTH_CHANNELS if c in f), next(iter(f)) if len(f) == 1 else None)
+        px = None if name is None else f[name].pixels
         if px is None or px.ndim != 2:
             raise ImageReadError(f"{path}: an EXR with channels {', '.join(sorted(f))} is an image, not a depth map "
-                                 "(one channel, or one named Z)")
+                                 "(one channel, or one named disparity or Z)")
         return np.ascontiguousarray(px, dtype=np.float32)
     img = read_image(path)
     grey = img[:, :, 0]

@@ -2,8 +2,11 @@
 
 It holds everything needed to check and to rebuild the data set: the recipe (its full text and
 sha256), the dofsynth version, and per split every shard with its first sample index, sample
-count, sha256 and size. It holds no time stamp, host name or duration, so the same recipe gives
-a byte-identical manifest on any machine, whatever the worker count.
+count, sha256 and size; what a sample holds (`format`: each member's type, dtype, range and
+meaning, the conventions: dofsynth.record.format_description) and the versions of the libraries
+that make the bytes (`libraries`). It holds no time stamp, host name or duration, so the same
+recipe and library versions give a byte-identical manifest on any machine, whatever the worker
+count.
 
 While a run is in progress, `OUT/.progress.jsonl` records the plan (first line) and each shard
 as it is finished (one JSON line each); `--resume` reads it, and it is deleted once the manifest
@@ -22,11 +25,32 @@ from pathlib import Path
 
 from dofsynth import __version__
 from dofsynth.files import atomic_write_bytes, canonical_json, read_json
+from dofsynth.record import format_description
 from dofsynth.shards import ShardInfo
 
 MANIFEST_NAME = "manifest.json"
 PROGRESS_NAME = ".progress.jsonl"
-MANIFEST_SCHEMA_VERSION = 1
+MANIFEST_SCHEMA_VERSION = 2  # 2: `format` and `libraries`
+READABLE_SCHEMAS = (1, 2)
+
+
+def library_versions() -> dict:
+    """The versions of what makes a sample's bytes (the determinism caveat depends on them)."""
+    import platform
+
+    import cv2
+    import numpy
+    import OpenEXR
+    import scipy
+
+    out = {"python": platform.python_version(), "numpy": numpy.__version__, "opencv": cv2.__version__,
+           "OpenEXR": getattr(OpenEXR, "__version__", "?"), "scipy": scipy.__version__}
+    try:
+        from importlib.metadata import version
+        out["pymatting"] = version("pymatting")
+    except Exception:  # not installed: photo + matte pairs cannot be generated either
+        out["pymatting"] = None
+    return out
 
 
 class ManifestError(ValueError):
@@ -115,6 +139,8 @@ def assemble_manifest(recipe: dict, recipe_samples: dict[str, int], shards: dict
     manifest = {
         "schema_version": MANIFEST_SCHEMA_VERSION,
         "dofsynth_version": __version__,
+        "format": format_description(),
+        "libraries": library_versions(),
         "recipe": dict(recipe),
         "splits": splits,
         "totals": {
@@ -158,7 +184,7 @@ def load_manifest(out_or_path: str | os.PathLike) -> dict:
     data = read_json(path, ManifestError)
     if not isinstance(data, dict) or "splits" not in data or "recipe" not in data:
         raise ManifestError(f"{path}: not a dofsynth manifest (no 'splits' or 'recipe')")
-    if data.get("schema_version") != MANIFEST_SCHEMA_VERSION:
+    if data.get("schema_version") not in READABLE_SCHEMAS:
         raise ManifestError(f"{path}: schema_version {data.get('schema_version')!r} is not "
                             f"{MANIFEST_SCHEMA_VERSION}; this dofsynth {__version__} cannot read it")
     return data

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from dofsynth.config import ConfigError, Range, error, key, parse_toml, read, read_text, table
 from dofsynth.files import sha256_bytes
+from dofsynth.shipped import recipe_path
 from dofsynth.optics.aperture import APERTURES
 from dofsynth.optics.coc import MAX_COC_PER_SIDE
 
@@ -177,6 +178,7 @@ def recipe_from_text(text: str, path_for_messages: str | os.PathLike, base_dir: 
 
 
 def load_recipe(path: str | os.PathLike) -> Recipe:
-    """Read and validate a recipe file (see docs/recipes.md). `Recipe.sha256` is of its bytes."""
-    p = Path(path)
+    """Read and validate a recipe file, or the shipped recipe of that name ("demo"; see
+    dofsynth.shipped and docs/recipes.md). `Recipe.sha256` is of its bytes."""
+    p = recipe_path(path)
     return recipe_from_text(read_text(p, "recipe file"), str(p), p.resolve().parent)

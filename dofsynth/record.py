@@ -12,8 +12,13 @@ What the pixels are:
 - `aif.png`: the all-in-focus composite (linear), sRGB-encoded, 8 bit, un-boosted.
 - `dof.N.png`: target N rendered from the planes (dofsynth.sample); clipped to [0, 1],
   sRGB-encoded, 8 bit.
-- `depth.exr`: `layers.disparity` float32, channel Z, ZIP (lossless).
+- `depth.exr`: `layers.disparity` float32, one channel named `disparity` (schema >= 3; older
+  shards: `Z`, which OpenEXR and OpenImageIO define as distance, so it was renamed), ZIP
+  (lossless), with header attributes stating the quantity and its convention (DEPTH_ATTRIBUTES).
 - `cover.png`: R = front plane alpha, G = middle plane alpha, B = 0 (8 bit, not sRGB-encoded).
+
+The image members (aif, dof) carry a PNG sRGB chunk (rendering intent perceptual); cover
+does not (its codes are coverage, not colour).
 
 Linear light goes to 8-bit sRGB with `color.linear_to_srgb8` (exact round-half-up of the sRGB
 formula, table-driven); values in [0, 1] (cover) with `to_uint8`'s round-half-up.
@@ -22,6 +27,8 @@ from __future__ import annotations
 
 import json
 import math
+import struct
+import zlib
 
 import cv2
 import numpy as np
@@ -30,9 +37,10 @@ from dofsynth import __version__
 from dofsynth.color import linear_to_srgb8
 from dofsynth.files import canonical_json
 from dofsynth.image import to_uint8
-from dofsynth.io import decode_exr, decode_image, encode_png_bgr, swap_rb
+from dofsynth.io import decode_exr, decode_image, encode_exr, encode_png_bgr, swap_rb
 
-SCHEMA_VERSION = 2  # 2: assets' colour; objects' anchored, visible and rejected
+SCHEMA_VERSION = 3  # 2: assets' colour; objects' anchored, visible and rejected;
+#                    3: depth.exr channel "disparity" (was "Z") with attributes; sRGB chunks
 RENDERER_ID = "layered-v3"  # v2: highlights blurred as boosted light and mapped back (dofsynth.highlight);
 #                             v3: cutouts edge-replicated past the frame edges they reach
 # zlib settings of the PNG members, chosen by measurement at 1024 px (docs/rendering.md):
@@ -47,6 +55,81 @@ PNG_PARAMS = (cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION, cv2.IMWRITE_PNG_STRA
               cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_PAETH)
 COVER_PNG_PARAMS = (cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION, cv2.IMWRITE_PNG_STRATEGY,
                     cv2.IMWRITE_PNG_STRATEGY_RLE, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP)
+
+DEPTH_CHANNEL = "disparity"
+DEPTH_CHANNELS = (DEPTH_CHANNEL, "Z")  # what readers accept: schema >= 3, then older shards
+DEPTH_ATTRIBUTES = {  # header attributes of depth.exr: what a reader needs, independent of focus
+    "dofsynth:quantity": "normalized disparity",
+    "dofsynth:convention": "1 = nearest plane of the scene, 0 = infinity; not a distance",
+    "dofsynth:range": "[0, 1]",
+    "dofsynth:coc": "signed circle-of-confusion radius in px = max_coc * (disparity - focus), "
+                    "max_coc and focus per target in the sample record",
+    "dofsynth:schema_version": str(SCHEMA_VERSION),
+}
+_SRGB_CHUNK = struct.pack(">I", 1) + b"sRGB\x00" + struct.pack(">I", zlib.crc32(b"sRGB\x00"))
+
+
+def with_srgb_chunk(png: bytes) -> bytes:
+    """PNG bytes with an sRGB chunk (intent 0, perceptual) right after IHDR."""
+    if png[12:16] != b"IHDR":
+        raise ValueError("not a PNG stream starting with IHDR")
+    end = 8 + 8 + struct.unpack(">I", png[8:12])[0] + 4
+    return png[:end] + _SRGB_CHUNK + png[end:]
+
+
+def encode_depth(disparity: np.ndarray) -> bytes:
+    """The depth member: (H, W) float32 normalized disparity, channel `disparity`, with
+    DEPTH_ATTRIBUTES in the header."""
+    return encode_exr(np.asarray(disparity, dtype=np.float32), DEPTH_CHANNEL, DEPTH_ATTRIBUTES)
+
+
+def decode_depth(data: bytes, name: str = "<depth.exr>") -> np.ndarray:
+    """(H, W) float32 disparity of a depth member, of any schema (channel disparity or Z)."""
+    return decode_exr(data, name, channels=DEPTH_CHANNELS)
+
+
+# What a sample holds: the manifest's `format.members` and the table in docs/FORMAT.md (a test
+# keeps them equal). Sizes are (H, W) = the record's `size`.
+MEMBERS = [
+    {"name": "aif.png", "type": "PNG", "dtype": "uint8", "channels": "RGB", "range": "0-255",
+     "meaning": "all-in-focus image, sRGB-encoded (sRGB chunk)"},
+    {"name": "depth.exr", "type": "EXR", "dtype": "float32", "channels": DEPTH_CHANNEL, "range": "0-1",
+     "meaning": "normalized disparity, 1 = nearest, 0 = infinity (older shards: channel Z)"},
+    {"name": "cover.png", "type": "PNG", "dtype": "uint8", "channels": "RGB", "range": "0-255",
+     "meaning": "coverage of each plane as placed, before blur: R = front, G = middle, B = 0 (not sRGB)"},
+    {"name": "dof.N.png", "type": "PNG", "dtype": "uint8", "channels": "RGB", "range": "0-255",
+     "meaning": "DoF target N = 0, 1, ..., sRGB-encoded (sRGB chunk); focus and max_coc in targets[N]"},
+    {"name": "json", "type": "JSON", "dtype": "utf-8", "channels": "-", "range": "-",
+     "meaning": "the sample record: the scene's parameters, sorted keys"},
+]
+CONVENTIONS = {
+    "disparity": "normalized disparity in [0, 1]: 1 = nearest, 0 = infinity",
+    "coc": "signed circle-of-confusion radius in px = max_coc * (disparity - focus), > 0 in front of focus",
+    "max_coc": "px at the stored size (halve it with the image)",
+    "colour": "PNG images are sRGB-encoded; blur and compositing happened in linear light, float32",
+    "paths": "shard paths are relative to the data set folder",
+}
+
+
+def format_description() -> dict:
+    """What the manifest says about its samples: members, conventions, record schema, renderer."""
+    return {"members": MEMBERS, "conventions": CONVENTIONS, "record_schema_version": SCHEMA_VERSION,
+            "renderer": RENDERER_ID}
+
+
+def exr_handler(key: str, data: bytes):
+    """A webdataset decoder handler for the EXR members: `wds.WebDataset(url).decode("rgb",
+    exr_handler)` yields depth.exr as (H, W) float32 disparity (any schema; coc.N.exr alike)
+    and other EXRs as (H, W, C) float32; None for other members (the next handler's)."""
+    if not key.lower().endswith("exr"):
+        return None
+    name = key.rsplit("/", 1)[-1]
+    chans = DEPTH_CHANNELS + ("coc",)
+    try:
+        return decode_exr(data, name, channels=chans)
+    except ValueError:
+        return decode_exr(data, name, channels=None)
+
 
 class SampleDecodeError(ValueError):
     """A sample whose members cannot be decoded; the message names the member."""
@@ -93,7 +176,7 @@ def encode_png8(img: np.ndarray) -> bytes:
         arr = to_uint8(arr)
     if arr.ndim != 3 or arr.shape[2] != 3:
         raise ValueError(f"PNG member must be (H, W, 3), got shape {arr.shape}")
-    return encode_png_bgr(swap_rb(arr), PNG_PARAMS)
+    return with_srgb_chunk(encode_png_bgr(swap_rb(arr), PNG_PARAMS))
 
 
 def encode_srgb_png(linear: np.ndarray) -> bytes:
@@ -112,7 +195,7 @@ def encode_srgb_png_rows(rows, h: int, w: int) -> bytes:
     for r0 in range(0, h, _ROWS):
         r1 = min(r0 + _ROWS, h)
         bgr[r0:r1] = swap_rb(linear_to_srgb8(rows(r0, r1)))
-    return encode_png_bgr(bgr, PNG_PARAMS)
+    return with_srgb_chunk(encode_png_bgr(bgr, PNG_PARAMS))
 
 
 _ROWS = 64  # rows per block of the sRGB encode
@@ -133,7 +216,7 @@ def encode_srgb_png_planar(linear: np.ndarray) -> bytes:
         for ch in range(3):
             linear_to_srgb8(linear[ch, r0:r1], out=codes[: r1 - r0])
             bgr[r0:r1, :, 2 - ch] = codes[: r1 - r0]
-    return encode_png_bgr(bgr, PNG_PARAMS)
+    return with_srgb_chunk(encode_png_bgr(bgr, PNG_PARAMS))
 
 
 def encode_cover(cover: np.ndarray) -> bytes:
@@ -179,7 +262,10 @@ def decode_sample(members: dict[str, bytes], key: str | None = None) -> dict:
         raise SampleDecodeError(f"{key}.json: not valid JSON ({exc})") from exc
     aif = decode_image(need("aif.png"), f"{key}.aif.png")
     cover = decode_image(need("cover.png"), f"{key}.cover.png")
-    depth = decode_exr(need("depth.exr"), f"{key}.depth.exr", channels="Z")
+    try:
+        depth = decode_depth(need("depth.exr"), f"{key}.depth.exr")
+    except ValueError as exc:
+        raise SampleDecodeError(str(exc)) from exc
     dof_ids = sorted(int(s.split(".")[1]) for s in members
                      if s.startswith("dof.") and s.endswith(".png") and s.split(".")[1].isdigit())
     if dof_ids != list(range(len(dof_ids))):

@@ -21,8 +21,7 @@ from dofsynth.assets import AssetLibrary
 from dofsynth.color import linear_to_srgb
 from dofsynth.compose import scene_layers
 from dofsynth.highlight import boost, unboost
-from dofsynth.io import encode_exr
-from dofsynth.record import (encode_alphas, encode_png8, encode_record, encode_srgb_png_planar,
+from dofsynth.record import (encode_alphas, encode_depth, encode_png8, encode_record, encode_srgb_png_planar,
                              encode_srgb_png_rows, sample_record)
 from dofsynth.render import render_planes
 from dofsynth.scene import Scene, Target
@@ -49,7 +48,7 @@ def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
     # Encode the un-blurred members first and drop their arrays (peak memory at large sizes).
     members: dict[str, bytes] = {
         "aif.png": encode_srgb_png_rows(aif_rows, *layers.disparity.shape),
-        "depth.exr": encode_exr(np.asarray(layers.disparity, dtype=np.float32)),
+        "depth.exr": encode_depth(layers.disparity),
         "cover.png": encode_alphas(planes[2].alpha, planes[1].alpha),
     }
     del layers, aif_rows

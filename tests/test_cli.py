@@ -7,7 +7,7 @@ import pytest
 from dofsynth import __version__
 from dofsynth.cli import build_parser, main
 
-COMMANDS = ["assets", "demo", "eval", "generate", "manifest", "render", "sheet", "stats", "train", "verify"]
+COMMANDS = ["assets", "demo", "docs", "eval", "generate", "manifest", "recipes", "render", "sheet", "stats", "train", "verify"]
 
 
 def test_every_command_is_registered():
@@ -38,3 +38,34 @@ def test_user_errors_are_one_line_with_status_2(tmp_path, capsys):
 def test_python_dash_m_and_version():
     out = subprocess.run([sys.executable, "-m", "dofsynth", "--version"], capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.strip() == f"dofsynth {__version__}"
+
+
+def test_every_command_takes_quiet_and_verbose_and_no_help_shows_a_none_default(capsys):
+    from dofsynth.cli import _leaf_parsers
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    leaves = _leaf_parsers(sub)
+    assert len(leaves) >= len(COMMANDS)
+    for p in leaves:
+        flags = {s for a in p._actions for s in a.option_strings}
+        assert {"-q", "--quiet", "-v", "--verbose"} <= flags, p.prog
+        assert "(default: None)" not in p.format_help(), p.prog
+
+
+def test_redirected_progress_prints_lines_not_carriage_return_frames(capsys):
+    from dofsynth import progress
+
+    with progress.bar(50, "work") as b:   # pytest's stderr is not a terminal
+        for _ in range(50):
+            b.update(1)
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    lines = err.strip().splitlines()
+    assert 9 <= len(lines) <= 11 and lines[-1].startswith("work: 50/50 samples (100%)")
+    progress.set_verbosity(quiet=True)
+    try:
+        with progress.bar(50, "work") as b:
+            b.update(50)
+    finally:
+        progress.set_verbosity()
+    assert capsys.readouterr().err == ""

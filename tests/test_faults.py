@@ -280,7 +280,7 @@ def _train_setup(tmp_path, **train):
 
 
 def test_a_nan_shard_stops_training_by_name_and_the_checkpoint_stays(tmp_path):
-    from dofsynth.io import encode_exr
+    from dofsynth.record import encode_depth
     from dofsynth.shards import read_shard, write_shard
 
     data, cfg, run = _train_setup(tmp_path, max_steps=4, checkpoint_interval=2, eval_interval=0)
@@ -291,7 +291,7 @@ def test_a_nan_shard_stops_training_by_name_and_the_checkpoint_stays(tmp_path):
     samples = list(read_shard(shard))
     key, members = samples[1]
     depth = np.full((48, 48), np.nan, np.float32)
-    samples[1] = (key, {**members, "depth.exr": encode_exr(depth)})
+    samples[1] = (key, {**members, "depth.exr": encode_depth(depth)})
     write_shard(shard, samples)
     rc, err = _ended(_start("train", cfg, "--data", data, "--run", run), 120)
     line = _one_line(err)

@@ -9,7 +9,7 @@ from pathlib import Path
 PKG = Path(__file__).resolve().parents[1] / "dofsynth"
 # Every top-level module or stage package, earliest first: a module may import its own stage
 # and earlier ones only.
-STAGES = ["dofsynth", "dofsynth.config", "dofsynth.files", "dofsynth.rng", "dofsynth.color", "dofsynth.highlight",
+STAGES = ["dofsynth", "dofsynth.config", "dofsynth.files", "dofsynth.progress", "dofsynth.shipped", "dofsynth.rng", "dofsynth.color", "dofsynth.highlight",
           "dofsynth.image",
           "dofsynth.io", "dofsynth.optics", "dofsynth.recipe", "dofsynth.assets", "dofsynth.placement", "dofsynth.scene",
           "dofsynth.render", "dofsynth.compose", "dofsynth.record", "dofsynth.sample", "dofsynth.shards",

@@ -48,3 +48,24 @@ def test_shared_assets_recipe_pins_the_real_photos(shared_assets):
     tr = {a.id for a in lib.assets_for("foreground", "train")}
     te = {a.id for a in lib.assets_for("foreground", "test")}
     assert tr and te and not tr & te
+
+
+PAIRS = train_config.DATA_RECIPES  # which training config goes with which data recipe
+
+
+def test_every_training_config_has_its_data_recipe():
+    assert set(PAIRS) == {p.name for p in TRAIN}
+
+
+@pytest.mark.parametrize("config", sorted(PAIRS))
+def test_a_training_config_fits_its_data(config):
+    """Its crops fit the images, and the largest blur is at most a quarter of the low-res crop
+    (the lens-blur network sees the whole disc and what surrounds it)."""
+    cfg = train_config.load(ROOT / "recipes" / config)
+    recipe = load_recipe(ROOT / "recipes" / PAIRS[config])
+    s = 2 ** cfg.data.levels
+    assert cfg.data.crop <= min(recipe.frame)
+    assert recipe.focus.max_coc[1] / s <= cfg.data.crop / s / 4, (recipe.focus.max_coc, cfg.data.crop, s)
+    if cfg.model.coc_ref:
+        assert cfg.model.coc_ref == recipe.focus.max_coc[1]
+    assert PAIRS[config] in (ROOT / "recipes" / config).read_text()  # its header names the recipe

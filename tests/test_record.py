@@ -13,9 +13,10 @@ from dofsynth.highlight import boost, unboost
 from dofsynth.image import to_uint8
 from dofsynth.compose import SceneLayers, scene_layers
 from dofsynth.recipe import load_recipe
-from dofsynth.io import encode_exr, encode_png
+from dofsynth.io import encode_png
 from dofsynth.render.planes import Plane
-from dofsynth.record import (RENDERER_ID, SCHEMA_VERSION, SampleDecodeError, decode_sample, encode_cover, encode_png8,
+from dofsynth.record import (RENDERER_ID, SCHEMA_VERSION, SampleDecodeError, decode_sample, encode_cover, encode_depth,
+                             encode_png8,
                              encode_record, encode_srgb_png, encode_srgb_png_planar)
 from dofsynth.sample import render_sample
 from dofsynth.render import render_planes
@@ -40,7 +41,7 @@ def test_members_and_record(setup):
         n = len(scene.targets)
         assert list(m) == ["aif.png", "depth.exr", "cover.png"] + [f"dof.{i}.png" for i in range(n)] + ["json"]
         rec = json.loads(m["json"])
-        assert rec["schema_version"] == SCHEMA_VERSION == 2 and rec["renderer"] == RENDERER_ID and rec["dofsynth_version"] == "0.1.0"
+        assert rec["schema_version"] == SCHEMA_VERSION == 3 and rec["renderer"] == RENDERER_ID and rec["dofsynth_version"] == "0.1.0"
         assert rec["key"] == scene.key and list(rec) == sorted(rec)
         assert {k: v for k, v in rec.items() if k not in ("schema_version", "renderer", "dofsynth_version")} == \
             json.loads(json.dumps(scene.to_dict()))
@@ -69,7 +70,7 @@ def test_every_member_round_trips_to_the_same_bytes(setup):
     for m in setup[3]:
         d = decode_sample(m)
         assert encode_png8(to_uint8(d["aif"])) == m["aif.png"]
-        assert encode_exr(d["depth"]) == m["depth.exr"]
+        assert encode_depth(d["depth"]) == m["depth.exr"]
         assert encode_cover(d["cover"]) == m["cover.png"]
         for i, img in enumerate(d["dof"]):
             assert encode_png8(to_uint8(img)) == m[f"dof.{i}.png"]
@@ -100,14 +101,15 @@ def test_where_nothing_is_blurred_every_target_is_the_all_in_focus_image(setup):
 
 
 def test_webdataset_reads_every_field(setup, tmp_path):
-    wds = pytest.importorskip("webdataset")
-    from dofsynth.io import decode_exr
+    """FORMAT.md's recipe: `.decode(..., exr_handler)` gives arrays for every member."""
+    import webdataset as wds
+
+    from dofsynth.record import exr_handler
 
     recipe, _, scenes, samples = setup
     path = tmp_path / "train-000000.tar"
     write_shard(path, [(s.key, m) for s, m in zip(scenes, samples)])
-    ds = wds.WebDataset(str(path), shardshuffle=False).decode(
-        wds.handle_extension("exr", lambda data: decode_exr(data)), "rgb8")
+    ds = wds.WebDataset(str(path), shardshuffle=False).decode("rgb8", exr_handler)
     got = list(ds)
     assert [g["__key__"] for g in got] == [s.key for s in scenes]
     for g, m in zip(got, samples):
@@ -120,6 +122,42 @@ def test_webdataset_reads_every_field(setup, tmp_path):
         assert g["json"] == d["record"]
     raw = next(iter(wds.WebDataset(str(path), shardshuffle=False)))  # undecoded: decode_sample takes it as is
     assert decode_sample(raw)["key"] == scenes[0].key
+
+
+def _chunks(png: bytes) -> list[bytes]:
+    out, i = [], 8
+    while i < len(png):
+        n = int.from_bytes(png[i:i + 4], "big")
+        out.append(png[i + 4:i + 8])
+        i += 12 + n
+    return out
+
+
+def test_image_members_say_srgb_and_the_depth_member_says_what_it_is(setup):
+    import io
+
+    import OpenEXR
+
+    m = setup[3][0]
+    for name in ("aif.png", "dof.0.png", "dof.1.png"):
+        assert _chunks(m[name])[:2] == [b"IHDR", b"sRGB"], name
+    assert b"sRGB" not in _chunks(m["cover.png"])           # coverage, not colour
+    f = OpenEXR.File(io.BytesIO(m["depth.exr"]))
+    assert list(f.channels()) == ["disparity"]                # not "Z": that means distance
+    header = f.header()
+    assert header["dofsynth:quantity"] == "normalized disparity"
+    assert "1 = nearest" in header["dofsynth:convention"] and header["dofsynth:schema_version"] == "3"
+
+
+def test_shards_of_older_schemas_still_decode(setup):
+    """Before schema 3 the depth member's channel was "Z"."""
+    from dofsynth.io import encode_exr
+    from dofsynth.record import decode_depth
+
+    m = dict(setup[3][0])
+    depth = decode_sample(m)["depth"]
+    m["depth.exr"] = encode_exr(depth, channel="Z")
+    assert np.array_equal(decode_sample(m)["depth"], depth) and np.array_equal(decode_depth(m["depth.exr"]), depth)
 
 
 def test_decode_errors_name_the_member(setup):

@@ -10,11 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from dofsynth.io import decode_exr, decode_image, encode_exr, encode_png
+from dofsynth.io import decode_image, encode_png
+from dofsynth.record import decode_depth, encode_depth
 from dofsynth.manifest import assemble_manifest, write_manifest
 from dofsynth.shards import ShardInfo, shard_name, write_shard
 from dofsynth.train.config import Config, from_dict
-from dofsynth.train.data import (DofShards, area_downsample, find_shards, make_loader, raw_samples, resolve,
+from dofsynth.train.data import (DofShards, area_downsample, find_segments, find_shards, make_loader, raw_samples,
+                                 resolve,
                                  sample_rng, training_item)
 
 TINY = {
@@ -41,12 +43,12 @@ def blur_target(aif: np.ndarray, disparity: np.ndarray, focus: float, max_coc: f
     return (1 - w) * aif + w * blurred
 
 
-def make_sample(split: str, index: int, size: int, seed: int = 0) -> dict:
-    """One sample's members (FORMAT.md): background texture on a ramp or flat plane, a middle
-    rectangle and a front disk, two DoF targets."""
+def make_sample(split: str, index: int, size: int, seed: int = 0, grain: int = 4) -> dict:
+    """One sample's members (FORMAT.md): background texture (random values in blocks of about
+    `grain` px) on a ramp or flat plane, a middle rectangle and a front disk, two DoF targets."""
     rng = np.random.default_rng([seed, index, len(split)])
     h = w = size
-    noise = rng.random((h // 4, w // 4, 3)).astype(np.float32)
+    noise = rng.random((h // grain, w // grain, 3)).astype(np.float32)
     bg = cv2.resize(noise, (w, h), interpolation=cv2.INTER_CUBIC).clip(0, 1)
     yy, xx = np.mgrid[0:h, 0:w]
     mid = ((np.abs(yy - h * rng.uniform(0.3, 0.7)) < h / 5) & (np.abs(xx - w * rng.uniform(0.3, 0.7)) < w / 4))
@@ -72,25 +74,34 @@ def make_sample(split: str, index: int, size: int, seed: int = 0) -> dict:
     aif[front] = rng.random(3)
     cover = np.zeros((h, w, 3), np.float32)
     cover[:, :, 0], cover[:, :, 1] = front, mid
-    members = {"aif.png": encode_png(aif), "depth.exr": encode_exr(depth),
+    members = {"aif.png": encode_png(aif), "depth.exr": encode_depth(depth),
                "cover.png": encode_png(cover), "json": json.dumps(record, sort_keys=True).encode()}
     for n, t in enumerate(record["targets"]):
         members[f"dof.{n}.png"] = encode_png(blur_target(aif, depth, t["focus"], t["max_coc"]))
     return members
 
 
-def make_dataset(out: Path, n_train: int = 8, n_test: int = 2, size: int = 32, per_shard: int = 4) -> Path:
+def make_dataset(out: Path, n_train: int = 8, n_test: int = 2, size: int = 32, per_shard: int | list = 4,
+                 grain: int = 4) -> Path:
     """A tiny data set: OUT/{train,test}/<split>-NNNNNN.tar of `size` px samples and the
-    manifest.json that lists them (docs/FORMAT.md)."""
+    manifest.json that lists them (docs/FORMAT.md). per_shard: samples per shard, or the train
+    split's shard sizes in order."""
     shards: dict[str, list[ShardInfo]] = {}
     for split, n in (("train", n_train), ("test", n_test)):
-        for k, s0 in enumerate(range(0, n, per_shard)):
+        sizes = per_shard if isinstance(per_shard, list) and split == "train" else None
+        if sizes is None:
+            step = per_shard if isinstance(per_shard, int) else max(per_shard)
+            sizes = [min(step, n - s0) for s0 in range(0, n, step)]
+        starts = np.cumsum([0] + sizes[:-1]).tolist()
+        for k, (s0, count) in enumerate(zip(starts, sizes)):
             name = shard_name(split, k)
-            ids = range(s0, min(n, s0 + per_shard))
+            ids = range(s0, s0 + count)
             count, sha, nbytes = write_shard(out / split / name,
-                                             ((f"{split}-{i:07d}", make_sample(split, i, size)) for i in ids))
+                                             ((f"{split}-{i:07d}", make_sample(split, i, size, grain=grain)) for i in ids))
             shards.setdefault(split, []).append(ShardInfo(split, k, name, s0, count, sha, nbytes))
-    recipe = {"text": "", "sha256": "0" * 64, "path": None, "name": "tiny"}
+    text = (f'name = "tiny"\nseed = 0\nsize = {size}\nsamples = {{ train = {n_train}, test = {n_test} }}\n'
+            '[assets]\nbackgrounds = "builtin"\nforegrounds = "builtin"\n[focus]\nmax_coc = [2.0, 4.0]\n')
+    recipe = {"text": text, "sha256": "0" * 64, "path": None, "name": "tiny"}
     write_manifest(out, assemble_manifest(recipe, {"train": n_train, "test": n_test}, shards))
     return out
 
@@ -136,7 +147,7 @@ def test_target_choice_crop_alignment_and_the_target_is_never_corrupted(data_dir
     assert full["target_index"] == 1 and full["image"].shape == (3, 48, 48)
     truth = decode_image(raw["dof.1.png"])
     assert np.array_equal(full["target"].numpy().transpose(1, 2, 0), truth)
-    clean = torch.from_numpy(decode_exr(raw["depth.exr"]))
+    clean = torch.from_numpy(decode_depth(raw["depth.exr"]))
     assert not torch.equal(full["disparity"][0], clean)  # the input is corrupted ...
     crop = training_item(raw, cfg, sample_rng(0, 3, "train", 0), crop=32)
     # ... the crop is aligned to 2**levels: it is found at an even offset of the full target
@@ -156,11 +167,14 @@ def test_random_target_choice_uses_every_target_and_is_seeded(data_dir):
     assert set(picks) == {0, 1} and picks == again
 
 
-def _keys(data_dir, cfg, workers, epoch=0):
-    ds = DofShards(find_shards(data_dir, "train"), cfg, train=True, seed=0, split="train")
-    ds.set_epoch(epoch)
-    loader = torch.utils.data.DataLoader(ds, batch_size=None, num_workers=workers)
-    return [item["key"] for item in loader]
+def _keys(data_dir, cfg, workers, epoch=0, rank=None, world=None, part="all", skip=0, batch=None):
+    ds = DofShards(find_segments(data_dir, "train", part, cfg.data.val_share), cfg, train=True, seed=0,
+                   split="train", rank=rank, world=world)
+    ds.set_epoch(epoch, skip_batches=skip)
+    loader = torch.utils.data.DataLoader(ds, batch_size=batch, num_workers=workers)
+    if batch is None:
+        return [item["key"] for item in loader]
+    return [list(b["key"]) for b in loader]
 
 
 @pytest.mark.parametrize("shards_per_split", [4, 12])  # 3 shards, or 1 shard (< workers)
@@ -172,15 +186,38 @@ def test_workers_split_the_data_without_duplicates(tmp_path, shards_per_split):
     assert _keys(data, cfg, workers=0, epoch=1) != _keys(data, cfg, workers=0, epoch=0)  # reshuffled per epoch
 
 
-def test_ranks_split_the_data_without_duplicates(data_dir, monkeypatch):
-    cfg = resolve(tiny_config(), data_dir)
-    seen = []
+def test_ranks_get_equal_shares_when_shards_do_not_divide_evenly(tmp_path):
+    """Shards of 24, 16 and 16 samples over 3 ranks: 18 each (56 // 3), no sample twice, and
+    per epoch different samples are left over."""
+    data = make_dataset(tmp_path, n_train=56, n_test=0, size=16, per_shard=[24, 16, 16])
+    cfg = resolve(tiny_config(data={"crop": 16, "val_share": 0.0}), data)
+    for epoch in (0, 1):
+        seen = [_keys(data, cfg, workers=0, rank=r, world=3, epoch=epoch) for r in range(3)]
+        assert [len(k) for k in seen] == [18, 18, 18]
+        flat = [k for ks in seen for k in ks]
+        assert len(set(flat)) == 54
+    two_workers = [_keys(data, cfg, workers=2, rank=r, world=3) for r in range(3)]
+    assert [len(k) for k in two_workers] == [18, 18, 18]  # 9 per worker
+
+
+def test_a_resumed_epoch_continues_where_each_rank_stopped(tmp_path):
+    """Skipping k batches yields exactly the rest of the uninterrupted epoch, on every rank,
+    with a shuffle buffer and two DataLoader workers."""
+    data = make_dataset(tmp_path, n_train=40, n_test=0, size=16, per_shard=[24, 16])
+    cfg = resolve(tiny_config(data={"crop": 16, "val_share": 0.0, "batch_size": 3, "shuffle_buffer": 5}), data)
     for rank in range(2):
-        monkeypatch.setenv("RANK", str(rank))
-        monkeypatch.setenv("WORLD_SIZE", "2")
-        seen.append(_keys(data_dir, cfg, workers=0))
-    assert not set(seen[0]) & set(seen[1])
-    assert sorted(seen[0] + seen[1]) == [f"train-{i:07d}" for i in range(12)]
+        full = _keys(data, cfg, workers=2, rank=rank, world=2, epoch=1, batch=3)
+        assert len(full) == 8  # 20 samples per rank, 10 per worker: batches of 3, 3, 3, 1 each
+        for k in (1, 3, 6):
+            assert _keys(data, cfg, workers=2, rank=rank, world=2, epoch=1, batch=3, skip=k) == full[k:]
+
+
+def test_the_validation_share_is_held_out_of_training(tmp_path):
+    data = make_dataset(tmp_path, n_train=20, n_test=2, size=16, per_shard=8)
+    cfg = resolve(tiny_config(data={"crop": 16, "val_share": 0.25}), data)
+    fit = set(_keys(data, cfg, workers=0, part="fit"))
+    val = set(_keys(data, cfg, workers=0, part="val"))
+    assert val == {f"train-{i:07d}" for i in range(15, 20)} and not fit & val and len(fit) == 15
 
 
 def test_missing_data_names_the_folder_and_the_split(tmp_path, data_dir):
@@ -217,5 +254,5 @@ def test_the_recorded_corruption_replays_the_disparity_the_network_saw(data_dir)
     params = json.loads(item["corruption"])
     assert all(m is not None for m in params["morph"]) and params["shift"] and params["noise"]
     layers = layers_from_record(json.loads(raw["json"]), decode_image(raw["cover.png"]))
-    replay = apply_corruption(decode_exr(raw["depth.exr"]), layers, params)
+    replay = apply_corruption(decode_depth(raw["depth.exr"]), layers, params)
     assert np.array_equal(replay, item["disparity"][0].numpy())

@@ -15,7 +15,7 @@ from dofsynth.cli import main
 from dofsynth.color import srgb_to_linear
 from dofsynth.train import checkpoint
 from dofsynth.train.config import from_dict, load, to_toml
-from dofsynth.train.infer import render_photo, upsampling_steps
+from dofsynth.train.infer import inference_sizes, render_photo, render_with, upsampling_steps
 from dofsynth.train.models import DeepLensNet
 from test_train_data import make_dataset, tiny_config
 
@@ -120,9 +120,94 @@ def test_render_photo_on_a_real_photo(setup, shared_assets):
         render_photo(run / "missing", photo, disparity, focus=0.7)
 
 
+@pytest.fixture(scope="module")
+def learned(tmp_path_factory):
+    """A tiny run trained for 200 steps on fine-grained textures (which a blur visibly
+    changes), long enough to learn where to blur."""
+    root = tmp_path_factory.mktemp("learned")
+    data = make_dataset(root / "data", n_train=16, n_test=0, size=48, grain=1)
+    cfg = tiny_config(model={"kp_width": 16}, data={"crop": 48}, augment={"enabled": False}, loss={"l1": 1.0},
+                      train={"max_steps": 200, "eval_interval": 0, "log_interval": 50, "checkpoint_interval": 200,
+                             "warmup_steps": 10})
+    (root / "c.toml").write_text(to_toml(cfg))
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        assert main(["train", str(root / "c.toml"), "--data", str(data), "--run", str(root / "run")]) == 0
+    finally:
+        torch.set_num_threads(n)
+    return root / "run"
+
+
+def test_render_model_on_a_real_photo_is_sharp_in_focus_and_blurred_elsewhere(learned, shared_assets, tmp_path):
+    """`dofsynth render --model` on a Kodak photo, the left half in focus, the right half far:
+    the right half loses more of its detail than the left; with the disparity zeroed (all far)
+    the left half blurs too, so the output depends on the depth it is given."""
+    from dofsynth.io import read_image, write_exr
+
+    srgb = cv2.imread(str(shared_assets / "bg" / "kodak_kodim01.png"))[:, :, ::-1].astype(np.float32) / 255
+    photo = tmp_path / "photo.png"
+    cv2.imwrite(str(photo), (cv2.resize(srgb, (192, 128), interpolation=cv2.INTER_AREA)[:, :, ::-1] * 255).round().astype(np.uint8))
+    depth = np.zeros((128, 192), np.float32)
+    depth[:, :96] = 0.8
+    outs = {}
+    for name, d in (("split", depth), ("zero", np.zeros_like(depth))):
+        write_exr(tmp_path / f"{name}.exr", d)
+        out = tmp_path / f"{name}.png"
+        assert main(["render", str(photo), "--depth", str(tmp_path / f"{name}.exr"), "--focus", "0.8",
+                     "--model", str(learned), "--out", str(out)]) == 0
+        outs[name] = read_image(out)[:, :, :3]
+
+    def detail(img):  # mean horizontal gradient in the left and right halves, away from the seam
+        g = np.abs(np.diff(img, axis=1)).mean(axis=2)
+        return g[:, 8:88].mean(), g[:, 104:184].mean()
+
+    src_l, src_r = detail(read_image(photo)[:, :, :3])
+    left, right = detail(outs["split"])
+    zero_l, _ = detail(outs["zero"])
+    assert left / src_l > right / src_r + 0.1      # in focus keeps more of its detail
+    assert zero_l < left * 0.9                      # ... and loses it when the depth says "far"
+    assert np.abs(outs["split"] - outs["zero"]).mean() > 0.003
+
+
 def test_upsampling_steps_reach_the_training_low_resolution():
     assert upsampling_steps(1024, 256) == 2 and upsampling_steps(1000, 256) == 2
     assert upsampling_steps(1025, 256) == 3 and upsampling_steps(200, 256) == 0
+    assert inference_sizes((512, 520), 256) == [(252, 256), (504, 512), (512, 520)]
+    assert inference_sizes((256, 128), 256) == [(256, 128)]
+
+
+class _FixedBlur(torch.nn.Module):
+    """A lens-blur stand-in with a trained network's habit: a blur of a fixed size in low-res
+    pixels (a Gaussian of sigma 3), whatever the photo's size."""
+
+    def forward(self, image, signed):
+        x = torch.arange(-12, 13, dtype=torch.float32)
+        g = torch.exp(-x**2 / 18)
+        g = (g[:, None] * g[None, :] / g.sum() ** 2).expand(3, 1, 25, 25)
+        return torch.nn.functional.conv2d(torch.nn.functional.pad(image, (12,) * 4, mode="replicate"), g, groups=3)
+
+
+def test_the_same_scene_at_two_sizes_gets_the_same_blur_as_a_fraction_of_the_picture():
+    """A bright square at the centre, blurred by the networks at 512 px and 520 px (which
+    power-of-two halvings would have put at 256 and 130 px): its spread over the picture side
+    must agree."""
+    cfg = tiny_config(data={"color": "linear"}, infer={"low_res_side": 256}, model={"coc_ref": 8.0})
+    model = DeepLensNet(cfg.model).eval()
+    model.lens = _FixedBlur()
+    with torch.no_grad():  # M_L = 1: every upsampling step passes the upsampled blur through
+        model.up.fuse[-1].weight.zero_()
+        model.up.fuse[-1].bias.fill_(30.0)
+    spreads = []
+    for side in (512, 520):
+        image = np.zeros((side, side, 3), np.float32)
+        c = side // 2
+        image[c - 2:c + 2, c - 2:c + 2] = 1.0
+        out = render_with(model, cfg, image, np.zeros((side, side), np.float32), focus=1.0)[:, :, 0]
+        yy, xx = np.mgrid[0:side, 0:side] - (side - 1) / 2
+        spreads.append(np.sqrt((out * (yy**2 + xx**2)).sum() / out.sum()) / side)
+    assert spreads[0] > 6 * 1.2 / 512  # blurred: sigma about 6 px at 512 px, not the 2.3 px square
+    assert spreads[1] == pytest.approx(spreads[0], rel=0.02)
 
 
 def test_eval_prints_and_writes_the_table(setup, capsys):
@@ -133,8 +218,52 @@ def test_eval_prints_and_writes_the_table(setup, capsys):
     table = json.loads((run / "eval.json").read_text())["table"]
     assert [r["method"] for r in table] == ["network", "classical", "all-in-focus"]
     assert all(r["n"] == 4 and 0 < r["psnr"] < 100 and -1 <= r["ssim"] <= 1 for r in table)  # 2 samples x 2 targets
-    assert (run / "eval.csv").read_text().startswith("method,psnr,ssim,n")
+    assert (run / "eval.csv").read_text().startswith("method,psnr,ssim,psnr_edge,n")
     assert main(["eval", str(run.parent / "nope"), "--data", str(data)]) == 2
+
+
+def _classical(result):
+    return [(r["key"], r["target"], r["psnr"]) for r in result["items"] if r["method"] == "classical"]
+
+
+def test_eval_gives_every_run_and_method_the_depth_asked_for(setup, tmp_path):
+    """--depth fixes the disparity: two runs trained with different corruption get the same
+    classical inputs under gt / a kind / a setting file, and different ones under "run"."""
+    _, data, _, run = setup
+    state = checkpoint.load(run / "ckpt.pt")
+    model, cfg = checkpoint.load_model(run)
+    clean_cfg = from_dict({**cfg.to_dict(), "augment": {"enabled": False}})
+    other = tmp_path / "clean-run"
+    checkpoint.save(other / "ckpt.pt", model, torch.optim.AdamW(model.parameters()), state["step"], 0, 0, clean_cfg)
+    kw = {"write": False, "device": "cpu"}
+    from dofsynth.train.evaluate import evaluate_run
+    for depth in ("gt", "morph"):
+        assert _classical(evaluate_run(run, data, depth=depth, **kw)) == _classical(evaluate_run(other, data, depth=depth, **kw))
+    assert _classical(evaluate_run(run, data, depth="gt", **kw)) != _classical(evaluate_run(run, data, depth="morph", **kw))
+    assert _classical(evaluate_run(other, data, depth="run", **kw)) == _classical(evaluate_run(run, data, depth="gt", **kw))
+    setting = tmp_path / "setting.toml"
+    setting.write_text("[augment]\nmorph_prob = 1.0\nmorph_kernel = [3, 15]\n")
+    assert _classical(evaluate_run(run, data, depth=str(setting), **kw)) == _classical(evaluate_run(run, data, depth="morph", **kw))
+    result = evaluate_run(run, data, depth="gt", **kw)
+    assert all(r["psnr_edge"] is not None and r["psnr_edge"] < 100 for r in result["table"])
+    assert main(["eval", str(run), "--data", str(data), "--depth", "fog"]) == 2   # refused before any work
+
+
+def test_the_classical_baseline_renders_with_the_targets_highlight_boost():
+    """In focus it returns the image exactly, highlights included; out of focus a small bright
+    light spreads brighter with the record's highlight boost than without."""
+    from dofsynth.train.evaluate import classical_render
+
+    image = np.full((48, 48, 3), 0.3, np.float32)
+    image[22:26, 22:26] = 1.0
+    flat = np.full((48, 48), 0.5, np.float32)
+    plain = {"aperture": {"kind": "disk"}, "options": {"linear_light": True}}
+    boosted = {"aperture": {"kind": "disk"},
+               "options": {"linear_light": True, "highlight": {"threshold": 0.9, "gain": 4.0, "power": 2.0}}}
+    assert np.allclose(classical_render(image, flat, 0.5, 6.0, boosted), image, atol=2e-6)
+    blurred = classical_render(image, flat, 0.0, 6.0, boosted)
+    dim = classical_render(image, flat, 0.0, 6.0, plain)
+    assert blurred[24, 24, 0] > dim[24, 24, 0] + 0.1
 
 
 def test_config_round_trip_and_refusals(tmp_path):
@@ -154,13 +283,14 @@ def test_config_round_trip_and_refusals(tmp_path):
 
 def test_two_steps_on_the_generators_smoke_data(tmp_path, smoke_set):
     from dofsynth.train.augment import layers_from_record
-    from dofsynth.io import decode_exr, decode_image
+    from dofsynth.io import decode_image
+    from dofsynth.record import decode_depth
     from dofsynth.train.data import find_shards, peek_records, raw_samples
 
     data = smoke_set
     # the corruption's model of the layers agrees with the generator's depth maps
     raw = next(raw_samples(find_shards(data, "train")))
-    record, depth, cover = json.loads(raw["json"]), decode_exr(raw["depth.exr"]), decode_image(raw["cover.png"])
+    record, depth, cover = json.loads(raw["json"]), decode_depth(raw["depth.exr"]), decode_image(raw["cover.png"])
     layers = layers_from_record(record, cover)
     free = (cover[:, :, 0] == 0) & (cover[:, :, 1] == 0)
     assert np.abs(depth - layers.background)[free].max() < 1e-5

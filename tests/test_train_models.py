@@ -49,9 +49,18 @@ def test_deeplens_net_any_size(size, steps):
         net(torch.rand(1, 4, *size), torch.zeros(1, 1, *low_size), steps)
 
 
-def test_gradients_reach_every_parameter():
+VARIANTS = {
+    "paper": TINY,
+    "official": ModelConfig(feat_channels=4, kp_width=8, kp_depth=2, up_width=8, up_depth=2, features="joint",
+                            raw_feature=True, kernel="blur", norm="batch"),
+    "group-norm": ModelConfig(feat_channels=4, kp_width=8, kp_depth=1, up_width=8, norm="group"),
+}
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_gradients_reach_every_parameter(variant):
     torch.manual_seed(0)
-    net = DeepLensNet(TINY)
+    net = DeepLensNet(VARIANTS[variant])
     image = torch.rand(2, 3, 32, 32)
     signed = torch.rand(2, 1, 8, 8) - 0.5
     low, high = net(image, signed, 2)
@@ -59,6 +68,23 @@ def test_gradients_reach_every_parameter():
     loss.backward()
     for name, p in net.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0, name
+
+
+def test_joint_features_with_the_raw_image_and_blur_kernels():
+    """Joint RGB features deal their maps out to the colours, the raw channel comes first, and
+    "blur" kernels make each output pixel a convex mix of its features."""
+    torch.manual_seed(0)
+    x = torch.rand(2, 3, 12, 14)
+    feats = ChannelFeatures(4, (1, 2), joint=True, raw=True)
+    f = feats(x)
+    assert f.shape == (2, 3, 9, 12, 14) and feats.out_channels == 9
+    assert torch.equal(f[:, :, 0], x)
+    net = LensBlurNet(4, (1, 2), 8, 1, joint=True, raw=True, kernel="blur")
+    out = net(x, torch.rand(2, 1, 12, 14) - 0.5)
+    f = net.features(x)
+    assert (out >= f.min(dim=2).values - 1e-5).all() and (out <= f.max(dim=2).values + 1e-5).all()
+    with pytest.raises(ValueError, match="kernel"):
+        LensBlurNet(4, (1,), 8, 1, kernel="sharp")
 
 
 def test_guided_upsampler_blends_between_the_sharp_image_and_the_upsampled_result():

@@ -12,6 +12,7 @@ import os
 import sys
 from pathlib import Path
 
+from dofsynth.progress import track
 from dofsynth.assets.decode import Asset, AssetError, decode_asset, image_header
 from dofsynth.assets.scan import Scan, image_files, is_paired_layout, read_sources_licences
 from dofsynth.files import atomic_write_bytes, canonical_json, read_json, sha256_bytes, sha256_file
@@ -38,8 +39,6 @@ def pin_folder(root: Path, out_dir: Path, kind: str | None = None, licence: str 
     to `out_dir`, the folder the manifest goes into. Every file is decoded (`decode=False`:
     headers only), so a truncated or unreadable one is listed under `skipped`, never pinned.
     `fg_dir` / `alpha_dir`: the paired layout's folder names (assets.fg_dir, assets.alpha_dir)."""
-    from tqdm import tqdm
-
     root = root.resolve()
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: no such asset folder")
@@ -49,7 +48,7 @@ def pin_folder(root: Path, out_dir: Path, kind: str | None = None, licence: str 
             lic.setdefault(k, v)
     paired = is_paired_layout(root, fg_dir, alpha_dir) or (root / fg_dir).is_dir()
     files, skipped = [], []
-    for p in tqdm(image_files(root), desc=f"scan {root.name}", unit="file", disable=not progress, file=sys.stderr):
+    for p in track(image_files(root), f"scan {root.name}", "file", enabled=progress):
         rel = p.relative_to(root).as_posix()
         data = p.read_bytes()
         try:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dofsynth.progress import track
 from dofsynth.assets.decode import (Asset, AssetError, alpha_bbox, alpha_of, area_thumb, check_size, cut_sides,
                                     background_alpha, decode_asset, image_header, unit_alpha)
 from dofsynth.assets.similar import perceptual_hash
@@ -182,9 +183,7 @@ def _matte(alpha: np.ndarray, path: str) -> dict:
 
 
 def _progress(files: list[Path], what: str):
-    from tqdm import tqdm
-
-    return tqdm(files, desc=f"scan {what}", unit="file", disable=len(files) < 500, file=sys.stderr)
+    return track(files, f"scan {what}", "file", enabled=len(files) >= 500)
 
 
 def scan_backgrounds(root: Path, sc: Scanner) -> list[Asset]:

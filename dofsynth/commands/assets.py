@@ -98,7 +98,6 @@ def register(subparsers) -> None:
                    help="the paired layout's photo folder, as the recipe's assets.fg_dir (default fg)")
     s.add_argument("--alpha-dir", default="alpha", metavar="NAME",
                    help="the paired layout's matte folder, as the recipe's assets.alpha_dir (default alpha)")
-    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=run_scan)
 
     c = sub.add_parser(

@@ -5,7 +5,6 @@ import argparse
 import os
 from pathlib import Path
 
-DEFAULT_RECIPE = Path(__file__).resolve().parents[2] / "recipes" / "demo.toml"
 
 
 def register(subparsers) -> None:
@@ -17,8 +16,8 @@ def register(subparsers) -> None:
             "(resuming if it is already there) and writes its contact sheet to OUT/demo-sheet.png."),
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="out", type=Path, metavar="DIR", help="output folder (default: out)")
-    p.add_argument("--recipe", default=DEFAULT_RECIPE, type=Path, metavar="RECIPE",
-                   help="recipe to run (default: recipes/demo.toml)")
+    p.add_argument("--recipe", default="demo", metavar="RECIPE",
+                   help="recipe file or shipped name (`dofsynth recipes list`; default: demo)")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1), metavar="N",
                    help="worker processes (default: up to 2)")
     p.set_defaults(func=run)

@@ -10,9 +10,12 @@ def register(subparsers) -> None:
         help="score a trained run on the test split against the classical renderer",
         description=(
             "Run the trained networks of RUN on every target of the test split of OUT and report "
-            "PSNR and SSIM (sRGB, against the rendered targets) next to the classical renderer "
-            "given the same corrupted disparity as a single image, and the all-in-focus input. "
-            "The table is printed and written to RUN/eval.csv and RUN/eval.json."
+            "PSNR and SSIM (sRGB, against the rendered targets; PSNR also in the band within max CoC "
+            "of a depth edge) next to the classical renderer given the same disparity as a single "
+            "image with the options that made the targets, and the all-in-focus input. --depth "
+            "chooses that disparity, the same for every method and every run, so runs trained "
+            "differently are scored on the same inputs. The table is printed and written to "
+            "RUN/eval.csv and RUN/eval.json."
         ),
     )
     p.add_argument("run_dir", metavar="RUN", help="run folder written by `dofsynth train`")
@@ -20,6 +23,11 @@ def register(subparsers) -> None:
     p.add_argument("--split", default="test", help="which split to score (default: test)")
     p.add_argument("--limit", type=int_at_least(1), default=None, help="score only the first N samples")
     p.add_argument("--no-classical", action="store_true", help="skip the classical renderer")
+    p.add_argument("--depth", default="run", metavar="WHICH",
+                   help="the disparity everyone is given: gt (clean), run (the run's own training "
+                        "corruption), morph, edge_blur, noise, quantize or shift (that kind alone, always, "
+                        "with the default [augment] ranges), or a TOML file whose [augment] table is the "
+                        "setting (e.g. a training config); default: run")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"], help="default: cuda when available")
     p.set_defaults(func=run)
 
@@ -27,12 +35,14 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from pathlib import Path
 
-    from dofsynth.train.evaluate import evaluate_run, format_table
+    from dofsynth.train.evaluate import depth_corruption, evaluate_run, format_table
+    from dofsynth.train.config import AugmentConfig
 
     if not Path(args.run_dir).is_dir():
         raise FileNotFoundError(f"RUN {args.run_dir}: no such run folder")
+    depth_corruption(args.depth, AugmentConfig())  # a bad --depth stops here, before any work
     result = evaluate_run(args.run_dir, args.data, split=args.split, limit=args.limit,
-                          classical=not args.no_classical, device=args.device)
+                          classical=not args.no_classical, depth=args.depth, device=args.device)
     print(format_table(result))
     print(f"written: {Path(args.run_dir) / 'eval.csv'}, {Path(args.run_dir) / 'eval.json'}")
     return 0

@@ -8,7 +8,7 @@ from dofsynth.commands import int_at_least
 
 DESCRIPTION = """\
 Render the data set a recipe describes into OUT: WebDataset tar shards OUT/train/*.tar and
-OUT/test/*.tar (each sample: aif.png, depth.exr, cover.png, dof.N.png, json; see docs/FORMAT.md)
+OUT/test/*.tar (each sample: aif.png, depth.exr, cover.png, dof.N.png, json; see `dofsynth docs FORMAT`)
 and OUT/manifest.json, written last. Sample i of a recipe is the same bytes whatever --workers,
 --executor, the machine, or an interruption and --resume. OUT must be new or empty unless
 --resume is given; a second run into the same OUT while one is running is refused (OUT/.lock).
@@ -16,12 +16,14 @@ and OUT/manifest.json, written last. Sample i of a recipe is the same bytes what
 
 EPILOG = """\
 examples:
-  dofsynth generate recipes/demo.toml --out out/demo --workers 2
-  dofsynth generate recipes/deeplens-18k.toml --out /data/dl18k --limit 100   # a quick look
-  dofsynth generate recipes/deeplens-18k.toml --out /data/dl18k --resume      # then the rest
-  dofsynth generate recipes/demo.toml --out out/demo --save-summary data_manifest/datasets/demo.json
-  dofsynth generate recipes/deeplens-18k.toml --out /shared/dl18k --executor ray --address auto
-  dofsynth generate recipes/deeplens-18k.toml --out /shared/dl18k --shards 0:20 --resume   # one job of an array
+  dofsynth generate demo --out out/demo --workers 2                          # a shipped recipe by name
+  dofsynth generate my-recipe.toml --out out/mine
+  dofsynth recipes copy deeplens-18k .        # an editable copy; put your assets beside it
+  dofsynth generate deeplens-18k.toml --out /data/dl18k --limit 100   # a quick look
+  dofsynth generate deeplens-18k.toml --out /data/dl18k --resume      # then the rest
+  dofsynth generate demo --out out/demo --save-summary data_manifest/datasets/demo.json
+  dofsynth generate deeplens-18k.toml --out /shared/dl18k --executor ray --address auto
+  dofsynth generate deeplens-18k.toml --out /shared/dl18k --shards 0:20 --resume   # one job of an array
   dofsynth manifest merge /shared/dl18k                                                   # then join the parts
 
 --limit N keeps the first N samples of each split (indices 0..N-1, identical to the same samples
@@ -30,7 +32,7 @@ and verified (sha256), makes the missing ones, removes leftovers of a killed run
 splits an earlier run began; the result equals an uninterrupted run with the same options.
 --shards A:B makes shards A..B-1 of the run's plan (train's shards, then test's; --plan prints
 it) and writes OUT/manifest.part-A-B.json; disjoint ranges may run at once into one OUT.
-See docs/generate.md ("Running a large job").
+See `dofsynth docs generate` ("Running a large job"); shipped recipes: `dofsynth recipes list`.
 """
 
 
@@ -42,7 +44,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "generate", help="render a recipe's data set into WebDataset shards and a manifest",
         description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("recipe", metavar="RECIPE", help="the recipe TOML file (e.g. recipes/demo.toml)")
+    p.add_argument("recipe", metavar="RECIPE", help="a recipe TOML file, or a shipped recipe by name (demo, deeplens-18k, ...: `dofsynth recipes list`)")
     p.add_argument("--out", metavar="OUT", help="data set folder to create (new or empty, or with --resume); required "
                    "unless --plan")
     p.add_argument("--workers", type=_positive_int, default=None, metavar="N",
@@ -70,7 +72,6 @@ def register(subparsers) -> None:
     p.add_argument("--save-summary", type=Path, default=None, metavar="PATH",
                    help="also write a short summary of the finished data set to PATH "
                         "(e.g. data_manifest/datasets/NAME.json)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar and no closing summary")
     p.set_defaults(func=run, resume_hint=resume_hint)
 
 

@@ -20,7 +20,7 @@ examples:
 
 Merging into OUT/manifest.json takes OUT's lock (refused while a --shards run is writing), then
 removes the merged parts and the stale lock, progress and temp files of the ranges (unless
---keep-parts), so OUT ends up like the folder of a single run. See docs/generate.md.
+--keep-parts), so OUT ends up like the folder of a single run. See `dofsynth docs generate`.
 """
 
 
@@ -38,7 +38,6 @@ def register(subparsers) -> None:
     m.add_argument("--keep-parts", action="store_true", help="keep the partial manifests after merging")
     m.add_argument("--save-summary", type=Path, default=None, metavar="PATH",
                    help="also write a short summary of the data set to PATH (e.g. data_manifest/datasets/NAME.json)")
-    m.add_argument("--quiet", action="store_true", help="print nothing on success")
     m.set_defaults(func=run)
     p.set_defaults(func=lambda args: p.print_help() or 2)
 

@@ -16,7 +16,7 @@ light. The photo is treated as ONE opaque plane whose disparity varies per pixel
 spread over a disc (or polygon) of radius |max_coc * (disparity - focus)| pixels, normalized.
 There is no hidden background behind foreground objects, so at depth edges a blurred background
 bleeds over a sharp foreground edge and a blurred foreground has nothing behind it to reveal
-(see docs/rendering.md for the known limits; layered scenes avoid them).
+(see `dofsynth docs rendering` for the known limits; layered scenes avoid them).
 
 DEPTH is normalized disparity (1 = nearest, 0 = infinity): a float32 EXR (channel Z or its only
 channel) or an 8/16-bit grey PNG/TIFF scaled to [0, 1]. It must have the photo's size.

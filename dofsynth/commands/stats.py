@@ -26,9 +26,9 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from dofsynth.qa.stats import write_stats
 
-    from tqdm import tqdm
+    from dofsynth.progress import bar as progress_bar
 
-    with tqdm(desc="stats", unit="sample", disable=None, leave=False) as bar:
+    with progress_bar(None, "stats", leave=False) as bar:
         png, js, stats = write_stats(args.out, path=args.path, json_path=args.json, splits=args.split,
                                      progress=bar.update)
     for split, st in stats["splits"].items():

@@ -11,19 +11,21 @@ def register(subparsers) -> None:
         "train",
         help="train the DeepLens lens-blur and upsampling networks on a data set",
         description=(
-            "Train the DeepLens networks on the shards of a dofsynth data set (OUT/train, and "
-            "OUT/test for periodic evaluation). RUN receives config.toml (the resolved config), "
-            "log.csv, ckpt.pt (model, optimizer, step, config, RNG states) and eval results. "
-            "Running the same command again continues from the checkpoint. For several GPUs: "
-            "torchrun --nproc_per_node N -m dofsynth -- train ... --device cuda (docs/training.md)."
+            "Train the DeepLens networks on the train split of a dofsynth data set (its last "
+            "[data] val_share held out for periodic validation; the test split is left for "
+            "`dofsynth eval`). RUN receives config.toml (the resolved config), log.csv, ckpt.pt "
+            "(model, optimizer, step, config, RNG states) and eval results. Running the same "
+            "command again continues from the checkpoint. For several GPUs: torchrun "
+            "--nproc_per_node N -m dofsynth -- train ... --device cuda. Which config goes with "
+            "which data recipe, and every key: `dofsynth docs training`."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("config", help="training recipe (TOML), e.g. recipes/train-tiny.toml")
+    p.add_argument("config", help="training config: a TOML file or a shipped name (train-tiny, train-demo, "
+                                   "train-learn, train-deeplens; `dofsynth recipes list`)")
     p.add_argument("--data", required=True, help="data set folder written by `dofsynth generate`")
     p.add_argument("--run", required=True, help="run folder for checkpoints, logs and config")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
-                   help="where to train (auto = cuda when available)")
+                   help="where to train (default: auto = cuda when available)")
     p.add_argument("--steps", type=int_at_least(0), default=None, help="stop after step N this time (the LR schedule still runs to train.max_steps; "
                         "run again without --steps to continue)")
     p.set_defaults(func=run, resume_hint=lambda args: "the last checkpoint is kept; run the same command again "

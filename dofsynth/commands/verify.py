@@ -34,9 +34,9 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from dofsynth.qa.verify import verify_dataset
 
-    from tqdm import tqdm
+    from dofsynth.progress import bar as progress_bar
 
-    with tqdm(desc="verify", unit="sample", disable=None, leave=False) as bar:
+    with progress_bar(None, "verify", leave=False) as bar:
         report = verify_dataset(args.out, deep=args.deep, deep_n=args.deep_n, seed=args.seed,
                                 recipe_path=args.recipe, progress=bar.update)
     for line in report.lines():

@@ -28,6 +28,7 @@ from dofsynth.generate.folder import (OutputNotEmptyError, check_shared_folder, 
 from dofsynth.generate.plan import ShardTask, plan_shards, plan_split, split_size
 from dofsynth.generate.worker import library_for, peak_rss_mb, portable, shard_usage
 from dofsynth.locks import OutputLock, RangeLock
+from dofsynth.progress import bar as progress_bar
 from dofsynth.manifest import (MANIFEST_NAME, PROGRESS_NAME, Usage, append_progress, build_manifest, build_part, load_part,
                                part_name, progress_part_name, read_progress, remove_progress, start_progress,
                                with_bad_assets, write_manifest, write_part)
@@ -102,22 +103,18 @@ def _bad_assets(done: list[ShardInfo]) -> dict[str, str]:
 
 def _make(recipe, out: Path, executor, tasks: list[ShardTask], todo: list[ShardTask], limits: dict,
           record, progress: bool, worker_lock: Path) -> tuple[float, float]:
-    """Render `todo` with `executor`, calling `record(info)` per finished shard, under one tqdm
-    bar over all `tasks` (those already made count as done). Returns (largest peak MiB of the
+    """Render `todo` with `executor`, calling `record(info)` per finished shard, under one
+    progress bar (dofsynth.progress) over all `tasks` (those already made count as done). Returns (largest peak MiB of the
     processes that rendered, seconds inside generate_shard summed over them)."""
     total = sum(t.samples for t in tasks)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=total, initial=total - sum(t.samples for t in todo), unit="sample",
-                   desc=f"generate {out.name}", dynamic_ncols=True, smoothing=0.1)
+    bar = progress_bar(total, f"generate {out.name}", initial=total - sum(t.samples for t in todo),
+                       enabled=progress)
     size = {t.path: t.samples for t in todo}
     shown: dict[str, int] = {}
 
     def on_samples(path: str, n: int) -> None:  # never more than a shard's size (a Ray retry repeats)
         now = min(size.get(path, 0), shown.get(path, 0) + n)
-        if bar is not None and now > shown.get(path, 0):
+        if now > shown.get(path, 0):
             bar.update(now - shown.get(path, 0))
         shown[path] = now
 
@@ -129,8 +126,7 @@ def _make(recipe, out: Path, executor, tasks: list[ShardTask], todo: list[ShardT
                 peak, busy = max(peak, d.peak_rss_mb), busy + d.seconds
                 record(d.info)
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
     return peak, busy
 
 

@@ -24,8 +24,9 @@ import cv2
 import numpy as np
 
 from dofsynth.files import atomic_write_bytes, canonical_json
-from dofsynth.io import decode_exr, decode_image, encode_png
+from dofsynth.io import decode_image, encode_png
 from dofsynth.optics.coc import coc_radius
+from dofsynth.record import decode_depth
 from dofsynth.qa import dataset as ds
 from dofsynth.qa.draw import BG, DIM, FG, put_text, text_size
 
@@ -86,7 +87,7 @@ def split_stats(out_dir, split: str, progress=None) -> dict:
     for item in ds.iter_samples(out_dir, split, decode=False):
         key, m = item["key"], item["members"]
         rec = json.loads(m["json"].decode("utf-8"))
-        depth = decode_exr(m["depth.exr"], f"{key}.depth.exr")
+        depth = decode_depth(m["depth.exr"], f"{key}.depth.exr")
         cover = decode_image(m["cover.png"], f"{key}.cover.png")
         n += 1
         size = size or list(depth.shape)

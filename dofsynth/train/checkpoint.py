@@ -2,7 +2,7 @@
 
     {"model": state_dict, "optimizer": state_dict, "step": int, "epoch": int, "batch": int,
      "config": Config.to_dict(), "rng": {"torch", "cuda", "python"}, "best_val": float|None,
-     "format": 1}
+     "format": 2}
 
 `step` counts finished optimizer steps; (epoch, batch) is where the data stream stands, so a
 resumed run continues with the next batch. Files are written through a temporary name, fsync
@@ -20,7 +20,7 @@ from dofsynth.train.config import Config, from_dict
 from dofsynth.train.models import DeepLensNet
 
 CHECKPOINT = "ckpt.pt"
-FORMAT = 1
+FORMAT = 2  # 2: the networks' module names changed ([model] norm, up_depth, ...)
 
 
 def rng_states() -> dict:

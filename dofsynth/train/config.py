@@ -14,9 +14,14 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from dofsynth.shipped import recipe_path
 from dofsynth.config import IntRange, Range, error, key, parse_toml, read, read_text, table, to_plain
 
 dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
+
+# The data recipe each shipped training config (recipes/) is sized for; docs/training.md has the table.
+DATA_RECIPES = {"train-tiny.toml": "smoke.toml", "train-demo.toml": "demo.toml", "train-learn.toml": "learn.toml",
+                "train-deeplens.toml": "deeplens-18k.toml"}
 
 
 @dataclass_kw
@@ -25,7 +30,8 @@ class DataConfig:
     crop: int = key(256, lo=1)           # side of the square high-res training crop, px (multiple of 2**levels)
     levels: int = key(2, lo=1)           # the lens blur works at 1 / 2**levels of the crop; that many x2 upsamplings
     target: str = key("random")          # which DoF target of a sample: "random" or an index ("0", "1", ...)
-    shuffle_buffer: int = key(256, lo=1)  # samples held in the shuffle buffer (per DataLoader worker)
+    val_share: float = key(0.05, lo=0.0, hi=0.5)  # the last share of train samples (by index), held out for validation
+    shuffle_buffer: int = key(64, lo=1)  # decoded crops held in the shuffle buffer (per DataLoader worker)
     batch_size: int = key(8, lo=1)       # per process (the global batch is batch_size * world size)
     num_workers: int = key(2, lo=0)      # DataLoader worker processes per training process
 
@@ -53,7 +59,12 @@ class ModelConfig:
     feat_dilations: tuple[int, ...] = key((1, 2, 4, 8), lo=1)  # one 3x3 conv each; c = feat_channels * len(...)
     kp_width: int = key(32, lo=1)                           # kernel predictor (a small U-Net) base width
     kp_depth: int = key(3, lo=0)                            # its number of x2 downsamplings
+    features: str = key("channel", choices=("channel", "joint"))  # per-colour conv stack (paper) or one RGB stack
+    raw_feature: bool = key(False)                          # the image itself is one of the c features (+1)
+    kernel: str = key("free", choices=("free", "blur"))      # "blur": kernels >= 0 summing to 1 (softmax)
+    norm: str = key("none", choices=("none", "batch", "group"))  # after each conv of the predictor / upsampler
     up_width: int = key(16, lo=1)                           # guided upsampler feature width
+    up_depth: int = key(0, lo=0)                            # U-Net levels of its low-res branch (0: two convs)
     coc_ref: float = key(0.0, lo=0.0)                       # r_max: max CoC radius (full-res px) of the largest
                                                             # aperture; 0 = the largest max_coc in the data
 
@@ -77,8 +88,8 @@ class TrainConfig:
     betas: Range = key((0.9, 0.99), lo=0.0, hi=1.0)
     grad_clip: float = key(1.0, lo=0.0)            # 0 = off
     log_interval: int = key(10, lo=1)
-    eval_interval: int = key(1000, lo=0)           # 0 = never (evaluation uses the test split, if present)
-    eval_batches: int = key(4, lo=1)
+    eval_interval: int = key(1000, lo=0)           # 0 = never; validation is on the held-out data.val_share
+    eval_batches: int = key(0, lo=0)               # 0 = the whole validation share
     checkpoint_interval: int = key(1000, lo=1)     # a checkpoint is also written at the last step
     dtype: str = key("bfloat16", choices=("bfloat16", "float16", "float32"))  # autocast dtype on CUDA
     compile: bool = key(False)                     # torch.compile the model (CUDA only)
@@ -118,7 +129,9 @@ def from_dict(d: dict, source: str = "<config>") -> Config:
 
 
 def load(path: str | Path) -> Config:
-    """Read a training recipe (TOML); a missing file raises FileNotFoundError naming it."""
+    """Read a training config (TOML), or the shipped one of that name ("train-demo"); a
+    missing file raises FileNotFoundError naming it."""
+    path = recipe_path(path)
     return from_dict(parse_toml(read_text(path, "training config"), str(path)), str(path))
 
 

@@ -1,4 +1,4 @@
-"""Training data: a torch IterableDataset over the WebDataset shards of docs/FORMAT.md.
+"""Training data: a torch IterableDataset over the shards of docs/FORMAT.md.
 
 One item (all float32 tensors, channels first; s = 2**levels, crop side C, low-res side C/s):
 
@@ -10,58 +10,100 @@ One item (all float32 tensors, channels first; s = 2**levels, crop side C, low-r
     target_lo  (3, C/s, C/s)  the DoF target, area-downsampled
     target     (3, C, C)      the DoF target (never corrupted)
     disparity  (1, C, C)      the corrupted disparity in [0, 1], high res (for baselines)
-    focus, max_coc, target_index, key, corruption (JSON text of the sampled parameters)
+    focus, max_coc, target_index, key, shard, corruption (JSON text of the sampled parameters)
 
 Colour: with [data] color = "srgb" (the default, as in the paper) images stay sRGB-encoded in
 [0, 1]; with "linear" they are decoded to linear light. Crops are aligned to multiples of s, so
-the low-res crop is exactly the crop of the low-res image.
+the low-res crop is exactly the crop of the low-res image. PNGs are cropped as stored codes and
+only the crop is converted to float.
 
-Shards are those OUT/manifest.json lists (read with dofsynth.shards, the generator's own tar
-reader). Splitting: the shard list is shuffled per epoch (seed, epoch), then split across distributed
-ranks and DataLoader workers through webdataset's `split_by_node` / `split_by_worker`; when
-there are fewer shards than ranks x workers every reader opens every shard and keeps every
-(ranks x workers)-th sample instead, so small data sets never leave a reader empty. A shuffle
-buffer mixes samples. Everything random about a sample (target, crop, corruption) comes from
-`np.random.default_rng([seed, epoch, split, index])`, so it does not depend on the number of
-workers or ranks. Batches are not padded: the last batch of a worker may be smaller.
+Which samples: OUT/manifest.json lists the shards and their sample indices. [data] val_share
+holds out the last share of the train split (by index) for validation ("val"); training reads
+the rest ("fit"). Splitting: per epoch the shard order is shuffled (seed, epoch); the samples in
+that order are cut into equal contiguous shares, one per (rank, DataLoader worker), the few left
+over dropped, so every rank makes the same number of batches (evaluation keeps every sample and
+shares them as evenly as possible). A reader opens only the shards its share touches. Each
+reader decodes and crops a sample before its shuffle buffer ([data] shuffle_buffer crops of
+about 10 * C**2 bytes each), so memory does not grow with the image size. Everything random
+about a sample (target, crop, corruption) comes from `np.random.default_rng([seed, epoch,
+split, index])`, so it does not depend on the number of workers or ranks. A resumed epoch
+starts at its batch on every rank (`set_epoch(epoch, skip_batches=k)`): the skipped samples
+are not decoded, and what follows is what the uninterrupted run would have read.
 """
 from __future__ import annotations
 
 import json
 import random
+import signal
+from dataclasses import dataclass
 from itertools import islice
-from typing import Iterator
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import torch
+import torch.distributed as dist
 import webdataset as wds
-from torch.utils.data import DataLoader, IterableDataset
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from dofsynth.color import srgb_to_linear
-from dofsynth.io import decode_exr, decode_image
+from dofsynth.io import decode_image, unit_float
 from dofsynth.manifest import load_manifest, manifest_shard_infos
 from dofsynth.optics.coc import coc_radius
-from dofsynth.rng import SPLIT_ID
+from dofsynth.record import decode_depth
+from dofsynth.recipe import recipe_from_text
+from dofsynth.rng import SPLIT_ID, sample_key
 from dofsynth.shards import read_shard
 from dofsynth.train.augment import corrupt_disparity, layers_from_record
 from dofsynth.train.config import Config, replace
 
+PARTS = ("all", "fit", "val")  # a whole split; train without / only its validation share
+
+
+@dataclass(frozen=True)
+class Segment:
+    """Consecutive samples [lo, hi) (indices) of one shard file."""
+    path: str
+    lo: int
+    hi: int
+
+
+def held_out(n: int, val_share: float) -> int:
+    """How many of n train samples the validation share holds (at least 1 when share > 0 and n >= 2)."""
+    return 0 if val_share <= 0 or n < 2 else min(n - 1, max(1, round(n * val_share)))
+
+
+def find_segments(data_dir: str | Path, split: str, part: str = "all", val_share: float = 0.0) -> list[Segment]:
+    """The samples of `split` (its `part`, see PARTS) that OUT/manifest.json lists, in index order."""
+    data_dir = Path(data_dir)
+    infos = sorted(manifest_shard_infos(load_manifest(data_dir)).get(split, []), key=lambda i: i.first_index)
+    if not infos:
+        raise FileNotFoundError(f"{data_dir}: the data set has no {split} split (is --data a dofsynth data set?)")
+    n = sum(i.samples for i in infos)
+    cut = n - held_out(n, val_share)
+    lo, hi = {"all": (0, n), "fit": (0, cut), "val": (cut, n)}[part]
+    segs = [Segment(str(data_dir / i.path), max(lo, i.first_index), min(hi, i.first_index + i.samples))
+            for i in infos]
+    segs = [s for s in segs if s.hi > s.lo]
+    if not segs:
+        raise FileNotFoundError(f"{data_dir}: the {split} split has no {part} samples (val_share {val_share})")
+    return segs
+
 
 def find_shards(data_dir: str | Path, split: str) -> list[str]:
     """The paths of the shards of `split` that OUT/manifest.json lists, in sample order."""
-    data_dir = Path(data_dir)
-    infos = manifest_shard_infos(load_manifest(data_dir)).get(split, [])
-    if not infos:
-        raise FileNotFoundError(f"{data_dir}: the data set has no {split} split (is --data a dofsynth data set?)")
-    return [str(data_dir / i.path) for i in sorted(infos, key=lambda i: i.first_index)]
+    return [s.path for s in find_segments(data_dir, split)]
 
 
-def raw_samples(shards) -> Iterator[dict]:
-    """Every sample of the shards as a webdataset-style dict: {"__key__": key, "__url__": the
-    shard's path, suffix: bytes}."""
+def raw_samples(shards, split: str | None = None) -> Iterator[dict]:
+    """Every sample of the shards (paths, or Segments with `split` given) as a webdataset-style
+    dict: {"__key__": key, "__url__": the shard's path, suffix: bytes}."""
     for shard in shards:
-        for key, members in read_shard(shard):
+        keys = None
+        if isinstance(shard, Segment):
+            keys = {sample_key(split, i) for i in range(shard.lo, shard.hi)}
+            shard = shard.path
+        for key, members in read_shard(shard, keys):
             yield {"__key__": key, "__url__": str(shard), **members}
 
 
@@ -95,39 +137,42 @@ def sample_rng(seed: int, epoch: int, split: str, index: int) -> np.random.Gener
 
 
 def training_item(sample: dict, cfg: Config, rng: np.random.Generator, *, crop: int | None = None,
-                  target: int | None = None) -> dict:
+                  target: int | None = None, augment=None) -> dict:
     """Decode one raw webdataset sample (member suffix -> bytes) into a training item; a sample
     that cannot be used (a member missing or undecodable, NaN or inf in it) raises ValueError
     naming its shard and key.
 
     crop: side of the aligned random crop (None: the whole image, trimmed to a multiple of
-    2**levels). target: which DoF target (None: as [data] target says).
+    2**levels). target: which DoF target (None: as [data] target says). augment: the
+    corruption (an AugmentConfig; None: the config's [augment]).
     """
+    return finish_item(decode_crop(sample, cfg, rng, crop=crop, target=target, augment=augment), cfg)
+
+
+def decode_crop(sample: dict, cfg: Config, rng, *, crop: int | None, target: int | None = None,
+                augment=None) -> dict:
+    """The compact half of `training_item`: the chosen target, the corrupted disparity and the
+    crop, as stored codes (images) and float32 (disparity); what the shuffle buffer holds."""
     key = sample.get("__key__", "?")
     try:
-        return _item(sample, key, cfg, rng, crop, target)
+        return _decode_crop(sample, key, cfg, rng, crop, target, cfg.augment if augment is None else augment)
     except (ValueError, KeyError) as exc:
         what = f"missing member {exc}" if isinstance(exc, KeyError) else str(exc)
         raise ValueError(f"{sample.get('__url__', '<shard>')}: sample {key}: {what}") from exc
 
 
-def _item(sample: dict, key: str, cfg: Config, rng, crop, target) -> dict:
+def _decode_crop(sample: dict, key: str, cfg: Config, rng, crop, target, augment) -> dict:
     record = json.loads(sample["json"])
     n_targets = len(record["targets"])
     if target is None:
         target = int(rng.integers(n_targets)) if cfg.data.target == "random" else int(cfg.data.target)
     if not 0 <= target < n_targets:
         raise ValueError(f"target {target} requested, the sample has {n_targets}")
-    image = decode_image(sample["aif.png"], f"{key}.aif.png")[:, :, :3]
-    depth = decode_exr(sample["depth.exr"], f"{key}.depth.exr")
+    depth = decode_depth(sample["depth.exr"], f"{key}.depth.exr")
     if not np.isfinite(depth).all():
         raise ValueError(f"depth.exr holds {int((~np.isfinite(depth)).sum())} NaN or inf values")
-    cover = decode_image(sample["cover.png"], f"{key}.cover.png")
-    dof = decode_image(sample[f"dof.{target}.png"], f"{key}.dof.{target}.png")[:, :, :3]
-    focus = float(record["targets"][target]["focus"])
-    max_coc = float(record["targets"][target]["max_coc"])
-
-    corrupted, params = corrupt_disparity(depth, layers_from_record(record, cover), cfg.augment, rng)
+    cover = unit_float(decode_image(sample["cover.png"], f"{key}.cover.png", raw=True), f"{key}.cover.png")
+    corrupted, params = corrupt_disparity(depth, layers_from_record(record, cover), augment, rng)
 
     s = 2 ** cfg.data.levels
     h, w = depth.shape
@@ -140,89 +185,167 @@ def _item(sample: dict, key: str, cfg: Config, rng, crop, target) -> dict:
         x0 = s * int(rng.integers((w - crop) // s + 1))
         ch = cw = crop
     win = (slice(y0, y0 + ch), slice(x0, x0 + cw))
-    image, dof, corrupted = image[win], dof[win], corrupted[win]
+    codes = {}
+    for name, member in (("image", "aif.png"), ("target", f"dof.{target}.png")):
+        img = decode_image(sample[member], f"{key}.{member}", raw=True)
+        if img.shape[:2] != (h, w):
+            raise ValueError(f"{member} is {img.shape[1]}x{img.shape[0]}, depth.exr {w}x{h}")
+        codes[name] = np.ascontiguousarray(img[win][:, :, :3])
+    t = record["targets"][target]
+    return {**codes, "disparity": np.ascontiguousarray(corrupted[win]), "focus": float(t["focus"]),
+            "max_coc": float(t["max_coc"]), "target_index": target, "key": key,
+            "shard": str(sample.get("__url__", "")), "corruption": json.dumps(params, sort_keys=True)}
+
+
+def finish_item(c: dict, cfg: Config) -> dict:
+    """A `decode_crop` result as the float32 tensors of a training item."""
+    s = 2 ** cfg.data.levels
+    image, dof = unit_float(c["image"], c["key"]), unit_float(c["target"], c["key"])
     if cfg.data.color == "linear":
         image, dof = srgb_to_linear(image), srgb_to_linear(dof)
-    signed_lo = signed_disparity(area_downsample(corrupted, s), focus, max_coc, cfg.model.coc_ref)
+    corrupted = c["disparity"]
+    signed_lo = signed_disparity(area_downsample(corrupted, s), c["focus"], c["max_coc"], cfg.model.coc_ref)
     return {
         "image": _chw(image), "image_lo": _chw(area_downsample(image, s)),
         "signed_lo": _chw(signed_lo),
         "target_lo": _chw(area_downsample(dof, s)), "target": _chw(dof),
         "disparity": _chw(corrupted),
-        "focus": focus, "max_coc": max_coc, "target_index": target, "key": key,
-        "shard": str(sample.get("__url__", "")),
-        "corruption": json.dumps(params, sort_keys=True),
+        **{k: c[k] for k in ("focus", "max_coc", "target_index", "key", "shard", "corruption")},
     }
 
 
-class DofShards(IterableDataset):
-    """Iterate decoded items (see the module docstring) over shards, once per epoch.
+def process_slot(rank: int | None = None, world: int | None = None) -> tuple[int, int, int, int]:
+    """(rank, world, worker, workers) of the calling process: torch.distributed's rank and world
+    size when initialised (else the arguments, else 0 and 1), the DataLoader worker's id."""
+    if rank is None or world is None:
+        rank, world = (dist.get_rank(), dist.get_world_size()) if dist.is_available() and dist.is_initialized() else (0, 1)
+    info = get_worker_info()
+    return rank, world, (info.id if info else 0), (info.num_workers if info else 1)
 
-    train=True: shuffled shards and samples, random crops of [data] crop. train=False: shards
-    in order, no shuffle buffer, still crops (deterministic: epoch 0 seeds) so items batch.
-    Call `set_epoch(e)` before each pass to get that epoch's order, crops and corruptions.
+
+def share(segments: list[Segment], start: int, stop: int) -> list[Segment]:
+    """Positions [start, stop) of the samples of `segments` taken in order, as segments."""
+    out, pos = [], 0
+    for seg in segments:
+        n = seg.hi - seg.lo
+        a, b = max(start, pos), min(stop, pos + n)
+        if b > a:
+            out.append(Segment(seg.path, seg.lo + a - pos, seg.lo + b - pos))
+        pos += n
+    return out
+
+
+class DofShards(IterableDataset):
+    """Iterate decoded items (see the module docstring) over segments of a split, once per epoch.
+
+    train=True: shuffled shard order and samples, random crops of [data] crop, equal shares.
+    train=False: index order, no shuffle buffer, deterministic crops (epoch 0 seeds), every
+    sample once across all readers. Call `set_epoch(e, skip_batches=k)` before each pass.
+    rank/world: for tests; by default torch.distributed's.
     """
 
-    def __init__(self, shards: list[str], cfg: Config, *, train: bool, seed: int, split: str):
+    def __init__(self, segments: list[Segment], cfg: Config, *, train: bool, seed: int, split: str,
+                 rank: int | None = None, world: int | None = None):
         if cfg.model.coc_ref <= 0:
             raise ValueError("model.coc_ref must be resolved (> 0) before loading data; see config.resolve")
-        self.shards, self.cfg, self.train, self.seed, self.split = list(shards), cfg, train, seed, split
-        self.epoch = 0
+        self.segments, self.cfg, self.train, self.seed, self.split = list(segments), cfg, train, seed, split
+        self.rank, self.world = rank, world
+        self.epoch, self.skip_batches = 0, 0
 
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
+    def set_epoch(self, epoch: int, skip_batches: int = 0) -> None:
+        self.epoch, self.skip_batches = int(epoch), int(skip_batches)
 
-    def _raw_samples(self):
-        shards = list(self.shards)
+    def __len__(self) -> int:
+        """Samples per epoch across all readers of this process (train: after the equal cut)."""
+        _, world, _, workers = process_slot(self.rank, self.world)
+        n = sum(s.hi - s.lo for s in self.segments)
+        return (n // (world * workers)) * workers if self.train else n
+
+    def _mine(self) -> tuple[list[Segment], int, int, int, int]:
+        """(this reader's segments, its share size, rank, reader id, workers). The DataLoader
+        takes batch k of an epoch from worker k % workers and always starts with worker 0, so
+        after skip_batches the workers play the readers rotated by that many."""
+        rank, world, worker, workers = process_slot(self.rank, self.world)
+        worker = (worker + self.skip_batches) % workers
+        segs = list(self.segments)
         if self.train:
-            np.random.default_rng([self.seed, self.epoch, 7]).shuffle(shards)
-        rank, world, worker, workers = wds.utils.pytorch_worker_info()
-        readers, slot = world * workers, rank * workers + worker
-        if len(shards) >= readers:
-            return raw_samples(wds.split_by_worker(wds.split_by_node(iter(shards))))
-        return (s for i, s in enumerate(raw_samples(shards)) if i % readers == slot)
+            order = np.random.default_rng([self.seed, self.epoch, 7]).permutation(len(segs))
+            segs = [segs[i] for i in order]
+        n, readers, slot = sum(s.hi - s.lo for s in segs), world * workers, rank * workers + worker
+        if self.train:
+            m = n // readers
+            start, stop = slot * m, (slot + 1) * m
+        else:
+            start, stop = n * slot // readers, n * (slot + 1) // readers
+        return share(segs, start, stop), stop - start, rank, worker, workers
 
     def __iter__(self):
-        samples = iter(self._raw_samples())
-        if self.train and self.cfg.data.shuffle_buffer > 1:
-            rank, _, worker, _ = wds.utils.pytorch_worker_info()
-            seed = int(np.random.SeedSequence([self.seed, self.epoch, rank, worker]).generate_state(1)[0])
-            bufsize = self.cfg.data.shuffle_buffer
-            samples = wds.shuffle(bufsize, min(bufsize, 64), rng=random.Random(seed))(samples)
+        segs, m, rank, worker, workers = self._mine()
+        batch = self.cfg.data.batch_size
+        done = sum(1 for i in range(self.skip_batches) if i % workers == worker)  # batches this worker made
+        skip = min(m, done * batch)
         epoch = self.epoch if self.train else 0
-        for raw in samples:
+        crop = self.cfg.data.crop
+
+        def compact(pos_raw):
+            pos, raw = pos_raw
+            if pos in skipped:  # will be dropped: not decoded
+                return pos, None
             index = json.loads(raw["json"])["index"]
-            rng = sample_rng(self.seed, epoch, self.split, int(index))
-            yield training_item(raw, self.cfg, rng, crop=self.cfg.data.crop)
+            return pos, decode_crop(raw, self.cfg, sample_rng(self.seed, epoch, self.split, int(index)), crop=crop)
+
+        shuffled = self.train and self.cfg.data.shuffle_buffer > 1
+        seed = int(np.random.SeedSequence([self.seed, self.epoch, rank, worker]).generate_state(1)[0])
+        order = list(self._shuffle(iter(range(m)), seed)) if shuffled else range(m)  # counts alone decide it
+        skipped = set(order[:skip])
+        stream = map(compact, enumerate(raw_samples(segs, self.split)))
+        if shuffled:
+            stream = self._shuffle(stream, seed)
+        for _, c in islice(stream, skip, None):
+            yield finish_item(c, self.cfg)
+
+    def _shuffle(self, items, seed: int):
+        size = self.cfg.data.shuffle_buffer
+        return wds.shuffle(size, min(size, 64), rng=random.Random(seed))(items)
 
 
-def make_loader(data_dir: str | Path, split: str, cfg: Config, *, train: bool, seed: int,
+def _quiet_worker(_worker_id: int) -> None:
+    """DataLoader workers leave Ctrl-C to the training process (one line, not a traceback each)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def make_loader(data_dir: str | Path, split: str, cfg: Config, *, train: bool, seed: int, part: str = "all",
                 pin_memory: bool = False) -> tuple[DofShards, DataLoader]:
-    """The dataset and a DataLoader of [data] batch_size / num_workers over OUT/<split>."""
-    ds = DofShards(find_shards(data_dir, split), cfg, train=train, seed=seed, split=split)
-    loader = DataLoader(ds, batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers,
-                        pin_memory=pin_memory, generator=torch.Generator().manual_seed(seed))
+    """The dataset and a DataLoader of [data] batch_size / num_workers over a split's `part`."""
+    segs = find_segments(data_dir, split, part, cfg.data.val_share)
+    ds = DofShards(segs, cfg, train=train, seed=seed, split=split)
+    workers = cfg.data.num_workers
+    loader = DataLoader(ds, batch_size=cfg.data.batch_size, num_workers=workers, pin_memory=pin_memory,
+                        prefetch_factor=4 if workers else None, worker_init_fn=_quiet_worker,
+                        generator=torch.Generator().manual_seed(seed))
     return ds, loader
 
 
+def data_facts(data_dir: str | Path) -> tuple[float, int]:
+    """(r_max, long side) of a data set from the recipe its manifest holds: the high end of
+    focus.max_coc (full-res px) and the output size (px)."""
+    manifest = load_manifest(data_dir)
+    rec = manifest["recipe"]
+    recipe = recipe_from_text(rec["text"], rec.get("path") or f"{data_dir}/manifest.json", Path(data_dir))
+    return float(recipe.focus.max_coc[1]), int(recipe.size)
+
+
 def resolve(cfg: Config, data_dir: str | Path) -> Config:
-    """Fill the config values that come from the data, reading only the JSON records of the
-    first training shard: model.coc_ref = the largest max_coc seen (r_max, full-res px) and
-    infer.low_res_side = the largest image side / 2**levels. Values already set are kept."""
-
-
+    """Fill the config values that come from the data (its manifest's recipe): model.coc_ref =
+    the largest max_coc the recipe can draw (r_max, full-res px) and infer.low_res_side = the
+    image side / 2**levels. Values already set are kept."""
     if cfg.model.coc_ref > 0 and cfg.infer.low_res_side > 0:
         return cfg
-    shard = find_shards(data_dir, "train")[0]
-    records = peek_records(shard)
-    if not records:
-        raise ValueError(f"{shard}: no sample records (.json members)")
+    coc, side = data_facts(data_dir)
     if cfg.model.coc_ref <= 0:
-        coc = max(float(t["max_coc"]) for r in records for t in r["targets"])
         if coc <= 0:
-            raise ValueError(f"{shard}: every target has max_coc 0; set [model] coc_ref")
+            raise ValueError(f"{data_dir}: the recipe's focus.max_coc is 0 everywhere; set [model] coc_ref")
         cfg = replace(cfg, "model", coc_ref=coc)
     if cfg.infer.low_res_side <= 0:
-        side = max(max(r["size"]) for r in records)
         cfg = replace(cfg, "infer", low_res_side=max(1, side // 2 ** cfg.data.levels))
     return cfg

@@ -1,98 +1,164 @@
-"""Evaluate a trained run on the test split, next to the classical renderer.
+"""Evaluate a trained run on a test split, next to the classical renderer.
 
-For every test sample and every one of its DoF targets, the same corrupted disparity (the
-training corruption with a fixed evaluation seed) goes to
+For every sample and every one of its DoF targets, the same disparity goes to
   - "network":   the run's DeepLensNet on the whole image (lens blur at 1/2**levels, then
                  guided upsampling), and
-  - "classical": dofsynth.render.render_planes on the image as a single plane
-                 (alpha = 1, disparity = the corrupted map), with the sample's aperture shape,
-and, as a floor, "all-in-focus" (the input itself). PSNR and SSIM (skimage.metrics, sRGB in
-[0, 1], data_range 1) are taken against the rendered target. The table is printed and written
-to RUN/eval.csv (one row per method) and RUN/eval.json (the table and every item).
+  - "classical": dofsynth.render.render_planes on the image as a single plane (alpha = 1,
+                 disparity = the given map) with the options that made the targets (the
+                 sample's aperture, its highlight boost, linear light or not),
+and, as a floor, "all-in-focus" (the input itself). Which disparity (`depth`): "gt" (the
+clean one), "run" (the run's own training corruption), one corruption kind alone at
+probability 1 with the default ranges of [augment] (see `DEPTH_KINDS`), or a TOML file whose
+[augment] table is the setting; always drawn with the evaluation seed, so runs trained
+differently are scored on the same inputs. PSNR and SSIM (skimage.metrics, sRGB in [0, 1],
+data_range 1) are taken against the rendered target, and PSNR also in the band within the
+target's max CoC of a depth edge of the clean disparity ("psnr_edge"), where a single-image
+renderer fails. The table is printed and written to RUN/eval.csv and RUN/eval.json.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from dofsynth.color import linear_to_srgb, srgb_to_linear
 from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
+from dofsynth.highlight import boost, unboost
+from dofsynth.record import decode_depth
 from dofsynth.optics.aperture import aperture_from_dict
 from dofsynth.render import Plane, render_planes
 from dofsynth.train.checkpoint import load_model
-from dofsynth.train.data import find_shards, raw_samples, sample_rng, training_item
+from dofsynth.train.config import AugmentConfig, load
+from dofsynth.train.data import find_segments, raw_samples, sample_rng, training_item
 
 METHODS = ("network", "classical", "all-in-focus")
+DEPTH_KINDS = {"morph": "morph_prob", "edge_blur": "edge_blur_prob", "noise": "noise_prob",
+               "quantize": "quantize_prob", "shift": "shift_prob"}
+EDGE_STEP = 0.02  # a depth edge: neighbouring disparities differ by more (ramps change far less per pixel)
+
+
+def depth_corruption(depth: str, run_augment: AugmentConfig) -> AugmentConfig:
+    """The corruption named by `depth` (see the module docstring) as an AugmentConfig."""
+    if depth == "gt":
+        return AugmentConfig(enabled=False)
+    if depth == "run":
+        return run_augment
+    if depth in DEPTH_KINDS:
+        off = {f: 0.0 for f in DEPTH_KINDS.values()}
+        return dataclasses.replace(AugmentConfig(), **{**off, DEPTH_KINDS[depth]: 1.0})
+    if depth.endswith(".toml"):
+        return load(depth).augment
+    raise ValueError(f"depth must be gt, run, one of {', '.join(DEPTH_KINDS)} or a .toml file "
+                     f"with an [augment] table, got {depth!r}")
 
 
 def _hwc(t: torch.Tensor) -> np.ndarray:
     return t.detach().float().cpu().numpy().transpose(1, 2, 0)
 
 
-def classical_render(image_linear: np.ndarray, disparity: np.ndarray, focus: float, max_coc: float,
+def classical_render(image_srgb: np.ndarray, disparity: np.ndarray, focus: float, max_coc: float,
                      record: dict) -> np.ndarray:
-    """The single-image classical render: one plane, alpha 1, the given disparity map, the
-    sample's aperture."""
-    plane = Plane(image_linear, alpha=np.ones(disparity.shape, np.float32), disparity=disparity)
-    return render_planes([plane], focus, max_coc, aperture_from_dict(record["aperture"]))
+    """The single-image classical render, sRGB-encoded: one plane, alpha 1, the given disparity
+    map, rendered as the record's targets were (dofsynth.sample): its aperture, its highlight
+    boost and inverse, in linear light unless `options.linear_light` is false."""
+    options = record.get("options", {})
+    hl = options.get("highlight")
+    linear_light = options.get("linear_light", True)
+    rgb = srgb_to_linear(image_srgb) if linear_light else np.array(image_srgb, np.float32)
+    if linear_light and hl:
+        rgb = boost(rgb, **hl)
+    plane = Plane(rgb, alpha=np.ones(disparity.shape, np.float32), disparity=disparity)
+    out = render_planes([plane], focus, max_coc, aperture_from_dict(record["aperture"]))
+    if not linear_light:
+        return np.clip(out, 0.0, 1.0)
+    return linear_to_srgb(unboost(out, **hl) if hl else out)
 
 
-def _metrics(pred_srgb: np.ndarray, target_srgb: np.ndarray) -> dict:
+def edge_band(disparity: np.ndarray, radius: float) -> np.ndarray:
+    """(H, W) bool: the pixels within `radius` px of a depth edge of the clean disparity."""
+    d = np.asarray(disparity, np.float32)
+    edge = np.zeros(d.shape, bool)
+    dy, dx = np.abs(np.diff(d, axis=0)) > EDGE_STEP, np.abs(np.diff(d, axis=1)) > EDGE_STEP
+    edge[:-1] |= dy
+    edge[1:] |= dy
+    edge[:, :-1] |= dx
+    edge[:, 1:] |= dx
+    r = max(1, int(np.ceil(radius)))
+    se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return cv2.dilate(edge.astype(np.uint8), se) > 0
+
+
+def _metrics(pred_srgb: np.ndarray, target_srgb: np.ndarray, band: np.ndarray) -> dict:
     pred = np.clip(pred_srgb, 0.0, 1.0).astype(np.float64)
     ref = target_srgb.astype(np.float64)
     side = min(ref.shape[:2])
     win = 7 if side >= 7 else max(1, side - (1 - side % 2))  # SSIM needs an odd window <= the side
-    return {"psnr": float(peak_signal_noise_ratio(ref, pred, data_range=1.0)),
-            "ssim": float(structural_similarity(ref, pred, data_range=1.0, channel_axis=2, win_size=win))}
+    out = {"psnr": float(peak_signal_noise_ratio(ref, pred, data_range=1.0)),
+           "ssim": float(structural_similarity(ref, pred, data_range=1.0, channel_axis=2, win_size=win)),
+           "psnr_edge": None}
+    if band.any():
+        out["psnr_edge"] = float(peak_signal_noise_ratio(ref[band], pred[band], data_range=1.0))
+    return out
 
 
 def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "test", limit: int | None = None,
-                 classical: bool = True, seed: int = 12345, device: str | None = None) -> dict:
-    """Score every target of the first `limit` samples of `split`; returns
-    {"table": [{"method", "psnr", "ssim", "n"}], "items": [...]} and writes RUN/eval.{csv,json}."""
+                 classical: bool = True, depth: str = "run", seed: int = 12345, device: str | None = None,
+                 write: bool = True) -> dict:
+    """Score every target of the first `limit` samples of `split`, everyone given the disparity
+    `depth` names; returns {"table": [{"method", "psnr", "ssim", "psnr_edge", "n"}], "items":
+    [...]} and writes RUN/eval.{csv,json} (unless write=False)."""
     run_dir = Path(run_dir)
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     model, cfg = load_model(run_dir, device)
+    augment = depth_corruption(depth, cfg.augment)
     to_srgb = (lambda x: x) if cfg.data.color == "srgb" else linear_to_srgb
     items = []
-    for n, raw in enumerate(raw_samples(find_shards(data_dir, split))):
+    for n, raw in enumerate(raw_samples(find_segments(data_dir, split), split)):
         if limit is not None and n >= limit:
             break
         record = json.loads(raw["json"])
+        clean = decode_depth(raw["depth.exr"], f"{raw['__key__']}.depth.exr")
         for t in range(len(record["targets"])):
-            item = training_item(raw, cfg, sample_rng(seed, t, split, int(record["index"])), crop=None, target=t)
+            rng = sample_rng(seed, t, split, int(record["index"]))
+            item = training_item(raw, cfg, rng, crop=None, target=t, augment=augment)
             target = to_srgb(_hwc(item["target"]))
-            image = _hwc(item["image"])
+            image = to_srgb(_hwc(item["image"]))
+            band = edge_band(clean[: target.shape[0], : target.shape[1]], item["max_coc"])
             with torch.inference_mode():
                 _, high = model(item["image"][None].to(device), item["signed_lo"][None].to(device),
                                 cfg.data.levels, item["image_lo"][None].to(device))
-            outputs = {"network": to_srgb(_hwc(high[0])), "all-in-focus": to_srgb(image)}
+            outputs = {"network": to_srgb(_hwc(high[0])), "all-in-focus": image}
             if classical:
-                linear = srgb_to_linear(image) if cfg.data.color == "srgb" else image
-                rendered = classical_render(linear, _hwc(item["disparity"])[:, :, 0], item["focus"],
-                                            item["max_coc"], record)
-                outputs["classical"] = linear_to_srgb(rendered)
+                outputs["classical"] = classical_render(image, _hwc(item["disparity"])[:, :, 0], item["focus"],
+                                                        item["max_coc"], record)
             for method, out in outputs.items():
-                items.append({"key": item["key"], "target": t, "method": method, **_metrics(out, target)})
+                items.append({"key": item["key"], "target": t, "method": method, **_metrics(out, target, band)})
     if not items:
         raise ValueError(f"{data_dir}/{split}: no samples to evaluate")
     table = []
     for method in METHODS:
         rows = [r for r in items if r["method"] == method]
         if rows:
+            edge = [r["psnr_edge"] for r in rows if r["psnr_edge"] is not None]
             table.append({"method": method, "psnr": float(np.mean([r["psnr"] for r in rows])),
-                          "ssim": float(np.mean([r["ssim"] for r in rows])), "n": len(rows)})
-    result = {"split": split, "seed": seed, "table": table, "items": items}
-    atomic_write_bytes(run_dir / "eval.csv", csv_text(["method", "psnr", "ssim", "n"], table).encode())
-    atomic_write_bytes(run_dir / "eval.json", canonical_json(result, indent=1))
+                          "ssim": float(np.mean([r["ssim"] for r in rows])),
+                          "psnr_edge": float(np.mean(edge)) if edge else None, "n": len(rows)})
+    result = {"split": split, "seed": seed, "depth": depth, "table": table, "items": items}
+    if write:
+        atomic_write_bytes(run_dir / "eval.csv", csv_text(["method", "psnr", "ssim", "psnr_edge", "n"], table).encode())
+        atomic_write_bytes(run_dir / "eval.json", canonical_json(result, indent=1))
     return result
 
 
 def format_table(result: dict) -> str:
-    lines = [f"{'method':<14} {'PSNR dB':>8} {'SSIM':>7} {'n':>5}"]
-    lines += [f"{r['method']:<14} {r['psnr']:>8.2f} {r['ssim']:>7.4f} {r['n']:>5}" for r in result["table"]]
+    lines = [f"depth given: {result.get('depth', 'run')}",
+             f"{'method':<14} {'PSNR dB':>8} {'SSIM':>7} {'edge dB':>8} {'n':>5}"]
+    for r in result["table"]:
+        edge = f"{r['psnr_edge']:>8.2f}" if r.get("psnr_edge") is not None else f"{'-':>8}"
+        lines.append(f"{r['method']:<14} {r['psnr']:>8.2f} {r['ssim']:>7.4f} {edge} {r['n']:>5}")
     return "\n".join(lines)

@@ -2,12 +2,12 @@
 
     render_photo(run_dir, image_linear, disparity, focus, aperture=1.0) -> linear RGB (H, W, 3)
 
-The lens blur runs at the training low-resolution scale: the photo is area-downsampled by
-2**n, with n the smallest number of halvings that brings its long side to at most
-[infer] low_res_side (the training image side / 2**levels), so a blur covers the same fraction
-of the picture as in training. Then n guided x2 upsamplings (shared weights) bring the result
-back to exactly (H, W) (non-power-of-two sizes included, see models.size_chain). A photo
-already smaller than low_res_side is enlarged to it first and the result area-reduced back.
+The lens blur runs at exactly the training low-resolution scale: the photo is area-resized so
+that its long side is [infer] low_res_side (the training image side / 2**levels), so a blur
+covers the same fraction of the picture as in training, whatever the photo's size. Then guided
+upsamplings (shared weights) bring the result back to exactly (H, W): x2 steps while they fit,
+and a last step of ratio in (1, 2] onto (H, W) (`inference_sizes`). A photo smaller than
+low_res_side is enlarged to it first and the result area-reduced back.
 
 aperture = r*/r_max in (0, 1]: the signed disparity fed to the network is
 (disparity - focus) * aperture (the network was trained with c / r_max). Inference runs in
@@ -23,7 +23,7 @@ import torch
 
 from dofsynth.color import linear_to_srgb, srgb_to_linear
 from dofsynth.train.checkpoint import CHECKPOINT, load_model
-from dofsynth.train.models import area_resize, bilinear, size_chain
+from dofsynth.train.models import area_resize, bilinear
 
 _MODELS: dict = {}
 
@@ -42,8 +42,19 @@ def cached_model(run_dir: str | Path, device: str):
 
 
 def upsampling_steps(side: int, low_res_side: int) -> int:
-    """The number n of halvings (rounding up) that bring `side` to at most `low_res_side`."""
+    """The number n of guided upsamplings from `low_res_side` to `side`: the least n with
+    low_res_side * 2**n >= side."""
     return max(0, math.ceil(math.log2(side / low_res_side) - 1e-9)) if side > low_res_side else 0
+
+
+def inference_sizes(size: tuple[int, int], low_res_side: int) -> list[tuple[int, int]]:
+    """Sizes from the lens-blur input (long side exactly `low_res_side`, the aspect of `size`)
+    to `size` (H, W >= that): x2 steps, the last one onto `size` (ratio in (1, 2])."""
+    h, w = size
+    f = low_res_side / max(h, w)
+    low = (max(1, round(h * f)), max(1, round(w * f)))
+    n = upsampling_steps(max(h, w), low_res_side)
+    return [(low[0] * 2**k, low[1] * 2**k) for k in range(n)] + [(h, w)] if n else [(h, w)]
 
 
 def render_photo(run_dir: str | Path, image_linear: np.ndarray, disparity: np.ndarray, focus: float,
@@ -68,6 +79,13 @@ def render_photo(run_dir: str | Path, image_linear: np.ndarray, disparity: np.nd
         raise ValueError(f"aperture (r*/r_max) must lie in (0, 1], got {aperture}")
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     model, cfg = cached_model(run_dir, device)
+    return render_with(model, cfg, image, disp, focus, aperture)
+
+
+def render_with(model, cfg, image: np.ndarray, disp: np.ndarray, focus: float, aperture: float = 1.0) -> np.ndarray:
+    """`render_photo` with a loaded model (a DeepLensNet and its Config), on the model's device;
+    the arguments are not checked again."""
+    device = next(model.parameters()).device
 
     net_in = linear_to_srgb(image) if cfg.data.color == "srgb" else np.maximum(image, 0.0)
     x = torch.from_numpy(np.ascontiguousarray(net_in.transpose(2, 0, 1)))[None].to(device)
@@ -79,11 +97,10 @@ def render_photo(run_dir: str | Path, image_linear: np.ndarray, disparity: np.nd
         f = low_side / max(h, w)
         work = (max(1, round(h * f)), max(1, round(w * f)))
         x, d = bilinear(x, work), bilinear(d, work)
-    steps = upsampling_steps(max(work), low_side)
-    sizes = size_chain(work, steps)
+    sizes = inference_sizes(work, low_side)
     signed_lo = (area_resize(d, sizes[0]) - focus) * aperture
     with torch.inference_mode():
-        _, out = model(x, signed_lo, steps)
+        _, out = model(x, signed_lo, sizes=sizes)
         out = area_resize(out, (h, w)).float()
     out = out[0].permute(1, 2, 0).cpu().numpy()
     if cfg.data.color == "srgb":

@@ -7,7 +7,8 @@ What happens: set up (distributed or not), resolve the config against the data a
 RUN/config.toml, build the model and AdamW, resume from RUN/ckpt.pt if it exists, then step:
 batch -> forward (autocast on CUDA) -> loss J(L) + beta J(H) -> backward -> clip -> step.
 Every log_interval steps a row goes to RUN/log.csv (and TensorBoard when installed); every
-eval_interval steps the test split is evaluated; every checkpoint_interval steps, and at the
+eval_interval steps the validation share of the train split ([data] val_share, never the
+test split) is evaluated, all of it; every checkpoint_interval steps, and at the
 end, RUN/ckpt.pt is written. Under torchrun every rank trains on its share of the shards and
 DistributedDataParallel averages the gradients; only rank 0 writes files.
 
@@ -30,10 +31,11 @@ import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 
+from dofsynth import progress
 from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
 from dofsynth.train import checkpoint
 from dofsynth.train.config import Config, from_dict, to_toml
-from dofsynth.train.data import find_shards, make_loader, resolve
+from dofsynth.train.data import make_loader, resolve
 from dofsynth.train.loss import deeplens_loss
 from dofsynth.train.models import DeepLensNet
 
@@ -51,15 +53,15 @@ def learning_rate(step: int, cfg: Config) -> float:
 
 
 def batch_stream(dataset, loader, epoch: int, skip: int):
-    """Endless (epoch, batch index, batch) triples, starting `skip` batches into `epoch`."""
+    """Endless (epoch, batch index, batch) triples, starting `skip` batches into `epoch` (the
+    dataset skips them without decoding)."""
     while True:
-        dataset.set_epoch(epoch)
+        dataset.set_epoch(epoch, skip_batches=skip)
         n = 0
-        for i, batch in enumerate(loader):
+        for i, batch in enumerate(loader, start=skip):
             n += 1
-            if i >= skip:
-                yield epoch, i, batch
-        if n == 0:
+            yield epoch, i, batch
+        if n == 0 and skip == 0:
             raise ValueError("the training split yielded no batch (no samples for this process)")
         epoch, skip = epoch + 1, 0
 
@@ -96,30 +98,33 @@ def to_device(batch: dict, device) -> dict:
     return {k: v.to(device, non_blocking=True) if torch.is_tensor(v) else v for k, v in batch.items()}
 
 
-def psnr(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Mean over the batch of PSNR (dB) of images in [0, 1] (B, C, H, W)."""
+def psnr_each(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """PSNR (dB) of each image of a batch in [0, 1] (B, C, H, W) -> (B,)."""
     mse = ((x.float().clamp(0, 1) - y.float()) ** 2).flatten(1).mean(1)
-    return (10 * torch.log10(1.0 / mse.clamp_min(1e-10))).mean()
+    return 10 * torch.log10(1.0 / mse.clamp_min(1e-10))
 
 
 @torch.no_grad()
 def evaluate(model, loader, cfg: Config, device, autocast) -> dict:
-    """Loss and PSNR of H on the first train.eval_batches batches of the test split."""
+    """Loss (per batch) and PSNR of H (per sample), averaged over the whole validation share
+    (or its first train.eval_batches batches when that is > 0), all ranks together."""
     model.eval()
-    totals = torch.zeros(3, device=device)  # loss sum, psnr sum, batches
+    totals = torch.zeros(4, device=device, dtype=torch.float64)  # loss sum, batches, psnr sum, samples
     for i, batch in enumerate(loader):
-        if i >= cfg.train.eval_batches:
+        if cfg.train.eval_batches and i >= cfg.train.eval_batches:
             break
         b = to_device(batch, device)
         with autocast:
             low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"])
         loss, _, _ = deeplens_loss(low, high, b["target_lo"], b["target"], cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps, cfg.loss.l1)
-        totals += torch.stack([loss, psnr(high, b["target"]), torch.ones((), device=device)])
+        p = psnr_each(high, b["target"])
+        totals += torch.stack([loss.double(), torch.ones((), device=device, dtype=torch.float64),
+                               p.double().sum(), torch.tensor(float(p.numel()), device=device, dtype=torch.float64)])
     if dist.is_initialized():
         dist.all_reduce(totals)
     model.train()
-    n = max(1.0, totals[2].item())
-    return {"val_loss": totals[0].item() / n, "val_psnr": totals[1].item() / n}
+    return {"val_loss": totals[0].item() / max(1.0, totals[1].item()),
+            "val_psnr": totals[2].item() / max(1.0, totals[3].item())}
 
 
 def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str = "auto",
@@ -146,7 +151,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
     master = rank == 0
     cuda = device.startswith("cuda")
     out = out or sys.stdout
-    say = (lambda msg: print(msg, file=out, flush=True)) if master else (lambda msg: None)
+    say = (lambda msg: print(msg, file=out, flush=True)) if master and not progress.quiet() else (lambda msg: None)
 
     # -- config, run folder, resume ------------------------------------------------------------
     run_dir = Path(run_dir)
@@ -195,13 +200,17 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
         model = DistributedDataParallel(model, device_ids=[torch.device(device).index] if cuda else None)
 
     # -- data ------------------------------------------------------------------------------------
-    train_ds, train_loader = make_loader(data_dir, "train", cfg, train=True, seed=t.seed, pin_memory=cuda)
-    try:
-        find_shards(data_dir, "test")
-        _, eval_loader = make_loader(data_dir, "test", cfg, train=False, seed=t.seed, pin_memory=cuda)
-    except FileNotFoundError:
-        eval_loader = None
-        say("no test split: periodic evaluation is off")
+    train_ds, train_loader = make_loader(data_dir, "train", cfg, train=True, seed=t.seed, part="fit",
+                                         pin_memory=cuda)
+    eval_loader = None
+    if cfg.data.val_share > 0 and t.eval_interval > 0:
+        try:
+            _, eval_loader = make_loader(data_dir, "train", cfg, train=False, seed=t.seed, part="val",
+                                         pin_memory=cuda)
+        except FileNotFoundError:
+            say("the train split is too small to hold out a validation share: periodic evaluation is off")
+    else:
+        say("data.val_share = 0 or train.eval_interval = 0: periodic evaluation is off")
     batches = batch_stream(train_ds, train_loader, epoch, batch_index)
 
     # -- logging ---------------------------------------------------------------------------------
@@ -223,6 +232,8 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
     model.train()
     t0 = time.perf_counter()
     samples, loss_value, row, eval_s = 0, None, {}, 0.0
+    per_step = cfg.data.batch_size * world
+    bar = progress.bar((end - step) * per_step, "train", enabled=master)
     while step < end:
         lr = learning_rate(step, cfg)
         for group in optimizer.param_groups:
@@ -243,6 +254,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
         optimizer.zero_grad(set_to_none=True)
         step += 1
         samples += b["image"].shape[0] * world
+        bar.update(min(per_step, b["image"].shape[0] * world))
         last = step == end
 
         row = {}
@@ -265,12 +277,16 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
                 for k in ("loss", "loss_low", "loss_high", "val_loss", "val_psnr", "lr"):
                     if k in row:
                         tb.add_scalar(k, float(row[k]), step)
-            say(" ".join(f"{k} {v}" for k, v in row.items()))
+            if "loss" in row:
+                bar.set_postfix_str(f"step {step}, loss {row['loss']}")
+            if "val_loss" in row or progress.verbose():  # validation rows always, the rest with -v
+                say(" ".join(f"{k} {v}" for k, v in row.items()))
         if master and (step % t.checkpoint_interval == 0 or last):
             checkpoint.save(ckpt_path, model, optimizer, step, epoch, batch_index, cfg, best_val)
             last_saved = step
 
     # -- done ------------------------------------------------------------------------------------
+    bar.close()
     if master:
         log_file.close()
         if tb is not None:

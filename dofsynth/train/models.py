@@ -7,16 +7,23 @@ signed circle-of-confusion radius over the largest aperture's max CoC (dimension
 feeding s * r*/r_max.
 
 LensBlurNet (Wang et al. 2018, Sec. 4.2):
-  F = ChannelFeatures(A): every colour channel A_i goes through the same stack of 3x3 convs
-      with ReLU (dilations 1, 2, 4, 8 by default, so the features span blurs of many sizes);
-      the intermediate maps are concatenated to c channels: F (B, 3, c, H, W).
-  K = KernelPredictor(A, s): a small U-Net gives a per-pixel kernel of c weights (B, c, H, W).
+  F = Features(A): a stack of 3x3 convs with ReLU (dilations 1, 2, 4, 8 by default, so the
+      features span blurs of many sizes), every layer's maps concatenated: F (B, 3, c, H, W).
+      [model] features = "channel": the same stack on each colour channel alone (the paper);
+      "joint": one stack on the RGB image whose maps are dealt out to the three colours in
+      turn (the official code). raw_feature = true puts A_i itself first among the c features.
+  K = KernelPredictor(A, s): a U-Net gives a per-pixel kernel of c weights (B, c, H, W);
+      [model] kernel = "free" leaves them as they are, "blur" makes them non-negative with
+      sum 1 (a softmax), so L is a per-pixel mix of the features, like a blur.
   L_i = sum_j K_j * F_ij: the lens-blurred image (B, 3, H, W).
 
 GuidedUpsampler (Sec. 4.3), one x2 step with weights shared across steps:
   features of the low-res (A, L, s), bilinearly upsampled, and features of the high-res A
   predict two weight maps; M_L = sigmoid(.), M_A = 1 - M_L (a convex blend, so in-focus pixels
-  can keep the sharp image exactly): H = M_A * A + M_L * upsample(L).
+  can keep the sharp image exactly): H = M_A * A + M_L * upsample(L). [model] up_depth > 0
+  makes its low-res branch a U-Net of that many levels (the official network's size).
+[model] norm = "batch" or "group" adds that normalisation after every convolution of the
+kernel predictor and the upsampler (never in the features, which stay image filters).
   Applied recurrently from the low resolution to any size: the size chain halves the target
   size (rounding up) `steps` times, so non-power-of-two sizes are exact at every step.
 """
@@ -49,6 +56,10 @@ def bilinear(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
         x, size=size, mode="bilinear", align_corners=False)
 
 
+NORMS = ("none", "batch", "group")
+KERNELS = ("free", "blur")
+
+
 def conv(cin: int, cout: int, dilation: int = 1, stride: int = 1) -> nn.Conv2d:
     """3x3 convolution that keeps the size (stride 1) or halves it rounding up (stride 2);
     replicate padding, so a flat image stays flat up to the border."""
@@ -56,65 +67,106 @@ def conv(cin: int, cout: int, dilation: int = 1, stride: int = 1) -> nn.Conv2d:
                      padding_mode="replicate")
 
 
-class ChannelFeatures(nn.Module):
-    """(B, 3, H, W) image -> (B, 3, c, H, W): the same conv stack on each colour channel alone;
-    c = channels * len(dilations), the concatenation of every layer's ReLU output."""
+def block(cin: int, cout: int, norm: str = "none", stride: int = 1) -> nn.Sequential:
+    """conv -> [normalisation] -> ReLU."""
+    layers = [conv(cin, cout, stride=stride)]
+    if norm == "batch":
+        layers.append(nn.BatchNorm2d(cout))
+    elif norm == "group":
+        layers.append(nn.GroupNorm(8 if cout % 8 == 0 else 1, cout))
+    elif norm != "none":
+        raise ValueError(f"norm must be one of {NORMS}, got {norm!r}")
+    return nn.Sequential(*layers, nn.ReLU())
 
-    def __init__(self, channels: int = 8, dilations: tuple[int, ...] = (1, 2, 4, 8)):
+
+class ChannelFeatures(nn.Module):
+    """(B, 3, H, W) image -> (B, 3, c, H, W), c = channels * len(dilations) (+ 1 with raw):
+    every layer's ReLU output, concatenated. joint=False: the same conv stack on each colour
+    channel alone; joint=True: one stack on RGB with 3 * channels maps per layer, map k going
+    to colour k % 3. raw=True: the colour channel itself is feature 0."""
+
+    def __init__(self, channels: int = 8, dilations: tuple[int, ...] = (1, 2, 4, 8), *,
+                 joint: bool = False, raw: bool = False):
         super().__init__()
-        cins = [1] + [channels] * (len(dilations) - 1)
-        self.layers = nn.ModuleList(conv(ci, channels, d) for ci, d in zip(cins, dilations))
-        self.out_channels = channels * len(dilations)
+        n = 3 if joint else 1
+        cins = [n] + [n * channels] * (len(dilations) - 1)
+        self.layers = nn.ModuleList(conv(ci, n * channels, d) for ci, d in zip(cins, dilations))
+        self.joint, self.raw = joint, raw
+        self.out_channels = channels * len(dilations) + int(raw)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         b, n, h, w = image.shape
-        x = image.reshape(b * n, 1, h, w)
+        x = image if self.joint else image.reshape(b * n, 1, h, w)
         feats = []
         for layer in self.layers:
             x = F.relu(layer(x))
             feats.append(x)
-        return torch.cat(feats, dim=1).reshape(b, n, self.out_channels, h, w)
+        f = torch.cat(feats, dim=1)
+        if self.joint:  # (B, 3k, H, W), map j*3 + i belongs to colour i
+            f = f.reshape(b, -1, 3, h, w).transpose(1, 2)
+        else:
+            f = f.reshape(b, n, -1, h, w)
+        if self.raw:
+            f = torch.cat([image.unsqueeze(2), f], dim=2)
+        return f
 
 
 class KernelPredictor(nn.Module):
     """(B, 3, H, W) image and (B, 1, H, W) signed disparity -> (B, c, H, W) per-pixel weights.
-    A U-Net of `depth` stride-2 levels (widths width * 2**k) with skip connections."""
+    A U-Net (`UNet`, 4 input channels) with a 1x1 head."""
 
-    def __init__(self, out_channels: int, width: int = 32, depth: int = 3):
+    def __init__(self, out_channels: int, width: int = 32, depth: int = 3, norm: str = "none"):
         super().__init__()
-        widths = [width * 2**k for k in range(depth + 1)]
-        self.stem = nn.Sequential(conv(4, width), nn.ReLU(), conv(width, width), nn.ReLU())
-        self.down = nn.ModuleList(
-            nn.Sequential(conv(widths[k], widths[k + 1], stride=2), nn.ReLU(),
-                          conv(widths[k + 1], widths[k + 1]), nn.ReLU()) for k in range(depth))
-        self.up = nn.ModuleList(
-            nn.Sequential(conv(widths[k + 1] + widths[k], widths[k]), nn.ReLU()) for k in reversed(range(depth)))
+        self.body = UNet(4, width, depth, norm)
         self.head = nn.Conv2d(width, out_channels, 1)
 
     def forward(self, image: torch.Tensor, signed: torch.Tensor) -> torch.Tensor:
-        x = self.stem(torch.cat([image, signed], dim=1))
+        return self.head(self.body(torch.cat([image, signed], dim=1)))
+
+
+class UNet(nn.Module):
+    """(B, cin, H, W) -> (B, width, H, W): `depth` stride-2 levels (widths width * 2**k) with
+    skip connections; depth 0 is two convolutions."""
+
+    def __init__(self, cin: int, width: int, depth: int, norm: str = "none"):
+        super().__init__()
+        widths = [width * 2**k for k in range(depth + 1)]
+        self.stem = nn.Sequential(block(cin, width, norm), block(width, width, norm))
+        self.down = nn.ModuleList(
+            nn.Sequential(block(widths[k], widths[k + 1], norm, stride=2), block(widths[k + 1], widths[k + 1], norm))
+            for k in range(depth))
+        self.up = nn.ModuleList(block(widths[k + 1] + widths[k], widths[k], norm) for k in reversed(range(depth)))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = self.stem(x)
         skips = []
         for down in self.down:
             skips.append(x)
             x = down(x)
         for up, skip in zip(self.up, reversed(skips)):
             x = up(torch.cat([bilinear(x, skip.shape[-2:]), skip], dim=1))
-        return self.head(x)
+        return x
 
 
 class LensBlurNet(nn.Module):
     """(B, 3, h, w) low-res image, (B, 1, h, w) signed disparity -> (B, 3, h, w) blurred L."""
 
     def __init__(self, feat_channels: int = 8, dilations: tuple[int, ...] = (1, 2, 4, 8),
-                 kp_width: int = 32, kp_depth: int = 3):
+                 kp_width: int = 32, kp_depth: int = 3, *, joint: bool = False, raw: bool = False,
+                 kernel: str = "free", norm: str = "none"):
         super().__init__()
-        self.features = ChannelFeatures(feat_channels, dilations)
-        self.kernel = KernelPredictor(self.features.out_channels, kp_width, kp_depth)
+        if kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+        self.features = ChannelFeatures(feat_channels, dilations, joint=joint, raw=raw)
+        self.kernel = KernelPredictor(self.features.out_channels, kp_width, kp_depth, norm)
+        self.blur = kernel == "blur"
 
     def forward(self, image: torch.Tensor, signed: torch.Tensor) -> torch.Tensor:
         _check(image, 3, "image"), _check(signed, 1, "signed", image.shape[-2:])
         feats = self.features(image)          # (B, 3, c, h, w)
         k = self.kernel(image, signed)        # (B, c, h, w)
+        if self.blur:
+            k = torch.softmax(k.float(), dim=1).to(feats.dtype)
         return (feats * k.unsqueeze(1)).sum(dim=2)
 
 
@@ -122,11 +174,11 @@ class GuidedUpsampler(nn.Module):
     """One upsampling step: low-res image, result and signed disparity (B, 3|3|1, h, w) plus the
     high-res image (B, 3, H, W) -> high-res result (B, 3, H, W) (any H, W; x2 in practice)."""
 
-    def __init__(self, width: int = 16):
+    def __init__(self, width: int = 16, depth: int = 0, norm: str = "none"):
         super().__init__()
-        self.low = nn.Sequential(conv(7, width), nn.ReLU(), conv(width, width), nn.ReLU())
-        self.high = nn.Sequential(conv(3, width), nn.ReLU(), conv(width, width), nn.ReLU())
-        self.fuse = nn.Sequential(conv(2 * width, width), nn.ReLU(), nn.Conv2d(width, 1, 1))
+        self.low = UNet(7, width, depth, norm)
+        self.high = nn.Sequential(block(3, width, norm), block(width, width, norm))
+        self.fuse = nn.Sequential(block(2 * width, width, norm), nn.Conv2d(width, 1, 1))
 
     def forward(self, image_lo, result_lo, signed_lo, image_hi):
         size = image_hi.shape[-2:]
@@ -139,19 +191,25 @@ class DeepLensNet(nn.Module):
     """Both networks: `forward(image, signed_lo, steps)` -> (L, H).
 
     image: (B, 3, H, W) high-res all-in-focus image. signed_lo: (B, 1, h, w) signed disparity at
-    the lowest size of `size_chain((H, W), steps)`. image_lo: optional (B, 3, h, w) low-res image
+    the lowest size of `size_chain((H, W), steps)`, or of `sizes` (lowest to (H, W)) if given. image_lo: optional (B, 3, h, w) low-res image
     (else area-downsampled here). Returns L (B, 3, h, w), the lens blur at low resolution, and
     H (B, 3, H, W) after `steps` guided x2 upsamplings.
     """
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
-        self.lens = LensBlurNet(cfg.feat_channels, tuple(cfg.feat_dilations), cfg.kp_width, cfg.kp_depth)
-        self.up = GuidedUpsampler(cfg.up_width)
+        self.lens = LensBlurNet(cfg.feat_channels, tuple(cfg.feat_dilations), cfg.kp_width, cfg.kp_depth,
+                                joint=cfg.features == "joint", raw=cfg.raw_feature, kernel=cfg.kernel,
+                                norm=cfg.norm)
+        self.up = GuidedUpsampler(cfg.up_width, cfg.up_depth, cfg.norm)
 
-    def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int,
-                image_lo: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        sizes = size_chain(tuple(image.shape[-2:]), steps)
+    def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
+                image_lo: torch.Tensor | None = None, *, sizes: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        if sizes is None:
+            sizes = size_chain(tuple(image.shape[-2:]), steps)
+        if tuple(sizes[-1]) != tuple(image.shape[-2:]):
+            raise ValueError(f"sizes must end at the image size {tuple(image.shape[-2:])}, got {sizes[-1]}")
+        steps = len(sizes) - 1
         _check(image, 3, "image"), _check(signed_lo, 1, "signed_lo", sizes[0])
         pyramid = [area_resize(image, s) for s in sizes]
         if image_lo is not None:

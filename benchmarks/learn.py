@@ -1,0 +1,166 @@
+"""The learning benchmark: the DeepLens findings reproduced at a scale a 2-core CPU trains in
+under an hour.
+
+    .venv/bin/python benchmarks/learn.py [--out out/learn-bench] [--part all|networks|main]
+
+1. Data: recipes/learn.toml (the demo recipe at 256 px, max CoC up to 8 px, built-in assets),
+   2000 train + 100 test samples, generated into OUT/data (kept and reused when present).
+2. Networks (--part networks): the shipped recipes/train-learn.toml, the paper's network, each
+   option of the official DeepLens code switched on alone and all together, for half the
+   steps; scored on the validation share (held out of train, the same inputs for all), never
+   on the test split, which is what the shipped defaults were chosen by.
+3. Main (--part main): recipes/train-learn.toml as shipped (c = 32), c = 8 and 16, and c = 32
+   trained on clean depth; then one table on the test split, everyone given the same
+   corrupted depth (the [augment] setting of recipes/train-learn.toml, drawn with the
+   evaluation seed): the trained network, the classical renderer (one image, the options that
+   made the targets), the all-in-focus input; PSNR, SSIM and PSNR in the band within max CoC
+   of a depth edge. The validation PSNR curve of the main run is printed too.
+Every size (image, crops, low resolution, steps, batch, parameters) is printed. Runs go to
+OUT/runs/<name>; a finished run is reused (delete it to train again).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import hashlib
+import io
+import time
+from pathlib import Path
+
+import torch
+
+from dofsynth import progress
+from dofsynth.generate import generate
+from dofsynth.manifest import load_manifest
+from dofsynth.recipe import load_recipe
+from dofsynth.train.config import load, replace, to_toml
+from dofsynth.train.evaluate import evaluate_run
+from dofsynth.train.loop import train
+from dofsynth.train.models import DeepLensNet
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPE = ROOT / "recipes" / "learn.toml"
+CONFIG = ROOT / "recipes" / "train-learn.toml"
+
+NETWORKS = {  # [model] overrides, each measured against the shipped config
+    "shipped": {},
+    "paper": {"features": "channel", "raw_feature": False, "kernel": "free", "norm": "none", "up_depth": 0},
+    "joint+raw features": {"features": "joint", "raw_feature": True},
+    "blur kernels": {"kernel": "blur"},
+    "batch norm": {"norm": "batch"},
+    "large upsampler": {"up_width": 32, "up_depth": 3},
+    "all official": {"features": "joint", "raw_feature": True, "kernel": "blur", "norm": "batch",
+                     "up_width": 32, "up_depth": 3},
+}
+
+
+def make_data(out: Path) -> Path:
+    data = out / "data"
+    try:
+        load_manifest(data)
+        return data
+    except FileNotFoundError:
+        pass
+    t0 = time.perf_counter()
+    generate(load_recipe(RECIPE), data, workers=2, progress=False)
+    print(f"generated {RECIPE.name} into {data} in {time.perf_counter() - t0:.0f} s")
+    return data
+
+
+def run(name: str, cfg, data: Path, out: Path) -> Path:
+    """Train `cfg` into OUT/runs/<config hash> (reused when finished: the same config under two
+    names trains once); returns the folder."""
+    folder = out / "runs" / hashlib.sha256(to_toml(cfg).encode()).hexdigest()[:12]
+    t0 = time.perf_counter()
+    log = io.StringIO()
+    train(cfg, data, folder, device="cpu", out=log)
+    print(f"  trained {name!r}: {cfg.train.max_steps} steps in {time.perf_counter() - t0:.0f} s "
+          f"({sum(p.numel() for p in DeepLensNet(cfg.model).parameters()):,} parameters)", flush=True)
+    return folder
+
+
+def score(folder: Path, data: Path) -> dict:
+    """The test table of a run, everyone given the corrupted depth of recipes/train-learn.toml."""
+    return {r["method"]: r for r in evaluate_run(folder, data, depth=str(CONFIG), device="cpu")["table"]}
+
+
+def row(name: str, r: dict, c: int | None = None) -> str:
+    cs = f"{c:>4}" if c is not None else ""
+    return f"| {name:<26} |{cs} {r['psnr']:>6.2f} | {r['ssim']:.4f} | {r['psnr_edge']:>6.2f} |"
+
+
+def channels(cfg) -> int:
+    return cfg.model.feat_channels * len(cfg.model.feat_dilations) + int(cfg.model.raw_feature)
+
+
+def last_val(folder: Path) -> dict:
+    with open(folder / "log.csv") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["val_psnr"]]
+    return {"val_psnr": float(rows[-1]["val_psnr"]), "val_loss": float(rows[-1]["val_loss"])}
+
+
+def part_networks(base, data: Path, out: Path) -> None:
+    steps = base.train.max_steps // 2
+    print(f"\n## Network options ({steps} steps each; validation share, the training corruption)\n")
+    lines = ["| network                    | parameters | val PSNR dB | val loss |", "|---|---|---|---|"]
+    for name, kw in NETWORKS.items():
+        cfg = replace(replace(base, "model", **kw), "train", max_steps=steps, checkpoint_interval=steps,
+                      eval_interval=steps)
+        v = last_val(run(f"net {name}", cfg, data, out))
+        n = sum(p.numel() for p in DeepLensNet(cfg.model).parameters())
+        lines.append(f"| {name:<26} | {n:>10,} | {v['val_psnr']:>11.2f} | {v['val_loss']:.4f} |")
+    print("\n".join(lines), flush=True)
+
+
+def part_main(base, data: Path, out: Path) -> None:
+    print(f"\n## Main runs ({base.train.max_steps} steps each)\n")
+    main_run = run("c=32 corrupted", base, data, out)
+    table = score(main_run, data)
+    print("\n### Test split, everyone given the same corrupted depth\n")
+    print("| method                     | PSNR dB | SSIM | edge dB |\n|---|---|---|---|")
+    for method in ("network", "classical", "all-in-focus"):
+        print(row(method if method != "network" else f"network (c = {channels(base)})", table[method]))
+
+    print("\n### Feature channels c (trained and tested on corrupted depth)\n")
+    print("| run                        |    c | PSNR dB | SSIM | edge dB |\n|---|---|---|---|---|")
+    for fc in (2, 4, 8):
+        cfg = replace(base, "model", feat_channels=fc)
+        folder = main_run if fc == base.model.feat_channels else run(f"c={channels(cfg)} corrupted", cfg, data, out)
+        print(row(f"feat_channels {fc}", score(folder, data)["network"], channels(cfg)))
+
+    print("\n### Trained on clean vs corrupted depth (tested on corrupted depth)\n")
+    clean = run("c=32 clean", replace(base, "augment", enabled=False), data, out)
+    print("| trained on                 | PSNR dB | SSIM | edge dB |\n|---|---|---|---|")
+    print(row("corrupted depth", table["network"]))
+    print(row("clean depth", score(clean, data)["network"]))
+
+    print("\n### Validation PSNR of the main run (held-out share of train)\n")
+    with open(main_run / "log.csv") as fh:
+        curve = [(r["step"], r["val_psnr"]) for r in csv.DictReader(fh) if r["val_psnr"]]
+    print("  ".join(f"step {s}: {float(p):.2f} dB" for s, p in curve))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=ROOT / "out" / "learn-bench")
+    ap.add_argument("--part", choices=("all", "networks", "main"), default="all")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    progress.set_verbosity(quiet=True)  # the training bars; this script prints its own lines
+    recipe, base = load_recipe(RECIPE), load(CONFIG)
+    data = make_data(args.out)
+    d = base.data
+    print(f"data: {RECIPE.name}, {recipe.size} px, max CoC {recipe.focus.max_coc[0]:g}-{recipe.focus.max_coc[1]:g} px, "
+          f"{recipe.samples.train} train ({d.val_share:.0%} held out for validation) + {recipe.samples.test} test")
+    print(f"training: {CONFIG.name}, {d.crop} px crops, lens blur at 1/{2 ** d.levels} ({d.crop >> d.levels} px "
+          f"crops, {recipe.size >> d.levels} px whole images), batch {d.batch_size}, {base.train.max_steps} steps, "
+          f"c = {channels(base)}, torch {torch.__version__}, {args.threads} threads")
+    if args.part in ("all", "networks"):
+        part_networks(base, data, args.out)
+    if args.part in ("all", "main"):
+        part_main(base, data, args.out)
+
+
+if __name__ == "__main__":
+    main()
