@@ -105,13 +105,16 @@ def encode_png(img: np.ndarray, compression: int = 3) -> bytes:
     return encode_png_bgr(swap_rb(arr) if arr.ndim == 3 else arr, (cv2.IMWRITE_PNG_COMPRESSION, compression))
 
 
-def encode_exr(image: np.ndarray, channel: str = "Y", attributes: dict | None = None) -> bytes:
+def encode_exr(image, channel: str = "Y", attributes: dict | None = None) -> bytes:
     """Encode float32 pixels as a ZIP-compressed (lossless) EXR: an (H, W) map as one channel
-    named `channel`, an (H, W, 3|4) image as channels R, G, B(, A); `attributes` (str or float
-    values) go into the header. (OpenEXR's "Z" means distance from the camera: not for
-    disparity, see dofsynth.record.encode_depth.)"""
-    arr = np.asarray(image, dtype=np.float32)
-    if arr.ndim == 2:
+    named `channel`, an (H, W, 3|4) image as channels R, G, B(, A), or a dict {name: (H, W)}
+    as those channels; `attributes` (str or float values) go into the header. (OpenEXR's "Z"
+    means distance from the camera: not for disparity, see dofsynth.record.encode_depth.)"""
+    if isinstance(image, dict):  # OpenEXR writes non-contiguous arrays wrongly: always copy
+        chans = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in image.items()}
+        if len({v.shape for v in chans.values()}) != 1 or next(iter(chans.values())).ndim != 2:
+            raise ValueError("EXR channels must be (H, W) maps of one size")
+    elif (arr := np.asarray(image, dtype=np.float32)).ndim == 2:
         chans = {channel: np.ascontiguousarray(arr)}
     elif arr.ndim == 3 and arr.shape[2] in (3, 4):
         # OpenEXR writes non-contiguous arrays wrongly: copy each channel out.
@@ -142,12 +145,11 @@ def decode_exr(data: bytes | io.IOBase, name: str = "<bytes>", channels: str | t
             if c in chans:
                 return np.ascontiguousarray(chans[c].pixels, dtype=np.float32)
         raise ImageReadError(f"{name}: EXR has no channel {' or '.join(map(repr, names))} (has {sorted(chans)})")
-    if len(chans) == 1:
-        px = next(iter(chans.values())).pixels
-        return np.ascontiguousarray(px if px.ndim == 3 else px[:, :, None], dtype=np.float32)
-    order = [k for k in ("R", "G", "B", "A") if k in chans] or sorted(chans)
-    planes = [chans[k].pixels if chans[k].pixels.ndim == 2 else chans[k].pixels[..., 0] for k in order]
-    return np.ascontiguousarray(np.stack(planes, axis=-1), dtype=np.float32)
+    # OpenEXR groups R, G, B(, A) into one "RGB(A)" entry of (H, W, C) pixels; colour first
+    colour = ("RGBA", "RGB", "R", "G", "B", "A")
+    order = [k for k in colour if k in chans] + sorted(k for k in chans if k not in colour)
+    planes = [p[:, :, None] if p.ndim == 2 else p for p in (chans[k].pixels for k in order)]
+    return np.ascontiguousarray(np.concatenate(planes, axis=2), dtype=np.float32)
 
 
 def read_exr(path: str | os.PathLike, channels: str | tuple | None = None) -> np.ndarray:

@@ -97,9 +97,13 @@ class HighlightRules:
     power: float = key(2.0, lo=0.0, hi=16.0, lo_open=True)
 
 
+OPTIONAL_MEMBERS = ("coc", "layers")  # coc.N.exr per target; layer.K.exr per plane (docs/FORMAT.md)
+
+
 @dataclass_kw
 class RenderRules:
     linear_light: bool = key(True)
+    members: tuple[str, ...] = key(())   # optional members per sample: any of OPTIONAL_MEMBERS
     aperture: ApertureRules = table(ApertureRules)
     highlight: HighlightRules = table(HighlightRules)
 
@@ -137,6 +141,9 @@ def _check(r: Recipe, file: str) -> None:
     """The rules between keys: at least one sample, a ramp that falls, planes in front."""
     if r.samples.train + r.samples.test == 0:
         raise ConfigError(f"{file}: samples: expected at least one sample in train or test, got 0")
+    bad = [m for m in r.render.members if m not in OPTIONAL_MEMBERS] or len(set(r.render.members)) < len(r.render.members)
+    if bad:
+        raise error(file, "render.members", f"distinct names among {list(OPTIONAL_MEMBERS)}", list(r.render.members))
     fo = r.focus
     if (fo.targets_per_scene - 1) * fo.min_separation > 0.5:
         raise error(file, "focus.min_separation", f"at most {0.5 / max(fo.targets_per_scene - 1, 1):.3g} for "

@@ -37,6 +37,7 @@ from dofsynth import __version__
 from dofsynth.color import linear_to_srgb8
 from dofsynth.files import canonical_json
 from dofsynth.image import to_uint8
+from dofsynth.optics.coc import coc_radius
 from dofsynth.io import decode_exr, decode_image, encode_exr, encode_png_bgr, swap_rb
 
 SCHEMA_VERSION = 3  # 2: assets' colour; objects' anchored, visible and rejected;
@@ -77,6 +78,28 @@ def with_srgb_chunk(png: bytes) -> bytes:
     return png[:end] + _SRGB_CHUNK + png[end:]
 
 
+def encode_coc(disparity: np.ndarray, focus: float, max_coc: float) -> bytes:
+    """The optional `coc.N.exr` member: the signed CoC radius in px of target N at every pixel,
+    max_coc * (disparity - focus) of the depth member (> 0 in front of the focal plane),
+    channel `coc`, with the target's focus and max_coc in the header."""
+    c = coc_radius(np.asarray(disparity, dtype=np.float32), float(focus), float(max_coc))
+    return encode_exr(np.asarray(c, np.float32), "coc", {
+        "dofsynth:quantity": "signed circle-of-confusion radius, px at the stored size",
+        "dofsynth:convention": "max_coc * (disparity - focus); > 0 in front of the focal plane, 0 in focus",
+        "dofsynth:focus": float(focus), "dofsynth:max_coc": float(max_coc)})
+
+
+def encode_layer(rgb: np.ndarray, alpha: np.ndarray, disparity) -> bytes:
+    """The optional `layer.K.exr` member (K = 0 background, 1 middle, 2 front): the plane as the
+    renderer saw it, before blur and highlight boost: linear straight colour R, G, B, coverage A
+    and its normalized disparity (a map for the background, a constant for a cutout)."""
+    h, w = alpha.shape
+    d = np.broadcast_to(np.asarray(disparity, dtype=np.float32), (h, w))
+    return encode_exr({"R": rgb[:, :, 0], "G": rgb[:, :, 1], "B": rgb[:, :, 2], "A": alpha, "disparity": d}, "", {
+        "dofsynth:quantity": "one plane: linear straight colour (RGB), coverage (A), normalized disparity",
+        "dofsynth:convention": "disparity 1 = nearest, 0 = infinity; planes composite back to front with over"})
+
+
 def encode_depth(disparity: np.ndarray) -> bytes:
     """The depth member: (H, W) float32 normalized disparity, channel `disparity`, with
     DEPTH_ATTRIBUTES in the header."""
@@ -101,6 +124,10 @@ MEMBERS = [
      "meaning": "DoF target N = 0, 1, ..., sRGB-encoded (sRGB chunk); focus and max_coc in targets[N]"},
     {"name": "json", "type": "JSON", "dtype": "utf-8", "channels": "-", "range": "-",
      "meaning": "the sample record: the scene's parameters, sorted keys"},
+    {"name": "coc.N.exr", "type": "EXR", "dtype": "float32", "channels": "coc", "range": "px",
+     "meaning": "optional (render.members coc): signed CoC radius of target N, max_coc * (disparity - focus)"},
+    {"name": "layer.K.exr", "type": "EXR", "dtype": "float32", "channels": "R, G, B, A, disparity", "range": "linear",
+     "meaning": "optional (render.members layers): plane K = 0 background, 1 middle, 2 front before blur"},
 ]
 CONVENTIONS = {
     "disparity": "normalized disparity in [0, 1]: 1 = nearest, 0 = infinity",
@@ -119,16 +146,17 @@ def format_description() -> dict:
 
 def exr_handler(key: str, data: bytes):
     """A webdataset decoder handler for the EXR members: `wds.WebDataset(url).decode("rgb",
-    exr_handler)` yields depth.exr as (H, W) float32 disparity (any schema; coc.N.exr alike)
-    and other EXRs as (H, W, C) float32; None for other members (the next handler's)."""
+    exr_handler)` yields depth.exr as (H, W) float32 disparity (any schema), coc.N.exr as (H, W)
+    float32 px, layer.K.exr as (H, W, 5) float32 R, G, B, A, disparity and other EXRs as
+    (H, W, C); None for other members (the next handler's)."""
     if not key.lower().endswith("exr"):
         return None
     name = key.rsplit("/", 1)[-1]
-    chans = DEPTH_CHANNELS + ("coc",)
-    try:
-        return decode_exr(data, name, channels=chans)
-    except ValueError:
-        return decode_exr(data, name, channels=None)
+    if name.startswith("depth.") or ".depth." in name:
+        return decode_depth(data, name)
+    if name.startswith("coc.") or ".coc." in name:
+        return decode_exr(data, name, channels="coc")
+    return decode_exr(data, name, channels=None)
 
 
 class SampleDecodeError(ValueError):

@@ -7,7 +7,9 @@ re-rendered from its JSON record alone (`verify --deep`, focus sweeps):
   the blur and the result mapped back by the exact inverse; else the plain render.
 - `aif.png`: the same with no blur, `unboost(composite(boost(planes)))`, so a target equals it
   wherever nothing that reaches a pixel is blurred;
-- `depth.exr`, `cover.png`: the disparity map and the two coverages (dofsynth.record).
+- `depth.exr`, `cover.png`: the disparity map and the two coverages (dofsynth.record);
+- with the recipe's `render.members`: `coc.N.exr` (target N's signed CoC map) and
+  `layer.K.exr` (each plane before blur and boost).
 With `options.linear_light = false` (the naive baseline, no highlight handling) the planes are
 sRGB-encoded before the blur and the result is stored as it is.
 """
@@ -21,7 +23,8 @@ from dofsynth.assets import AssetLibrary
 from dofsynth.color import linear_to_srgb
 from dofsynth.compose import scene_layers
 from dofsynth.highlight import boost, unboost
-from dofsynth.record import (encode_alphas, encode_depth, encode_png8, encode_record, encode_srgb_png_planar,
+from dofsynth.record import (encode_alphas, encode_coc, encode_depth, encode_layer, encode_png8, encode_record,
+                             encode_srgb_png_planar,
                              encode_srgb_png_rows, sample_record)
 from dofsynth.render import render_planes
 from dofsynth.scene import Scene, Target
@@ -31,6 +34,11 @@ def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
     """Render one scene to its tar members {suffix: bytes} (see the module docstring)."""
     layers = scene_layers(scene, library)
     planes = list(layers.planes)
+    extra = scene.options.members
+    optional = {}
+    if "layers" in extra:  # before the highlight boost, which works on the planes in place
+        for k, p in enumerate(planes):
+            optional[f"layer.{k}.exr"] = encode_layer(p.rgb, p.alpha, p.disparity)
     hl = asdict(scene.options.highlight) if scene.options.highlight is not None else None
     if hl is not None:  # the planes are this call's own fresh arrays: boost in place
         for i, p in enumerate(planes):
@@ -51,7 +59,11 @@ def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
         "depth.exr": encode_depth(layers.disparity),
         "cover.png": encode_alphas(planes[2].alpha, planes[1].alpha),
     }
-    del layers, aif_rows
+    if "coc" in extra:
+        for n, t in enumerate(scene.targets):
+            optional[f"coc.{n}.exr"] = encode_coc(layers.disparity, t.focus, t.max_coc)
+    members.update(optional)
+    del layers, aif_rows, optional
     linear_light = scene.options.linear_light
     if not linear_light:  # the naive baseline: blur sRGB-encoded values, store them as they are
         planes = [replace(p, rgb=linear_to_srgb(p.rgb)) for p in planes]

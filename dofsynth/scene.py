@@ -73,6 +73,7 @@ class Highlight:
 class Options:
     highlight: Highlight | None
     linear_light: bool
+    members: tuple[str, ...] = ()   # optional members written: "coc", "layers" (recipe render.members)
 
 
 @dataclass(frozen=True)
@@ -102,7 +103,7 @@ class Scene:
             "targets": [asdict(t) for t in self.targets],
             "aperture": self.aperture.to_dict(),
             "options": {"highlight": asdict(self.options.highlight) if self.options.highlight else None,
-                        "linear_light": self.options.linear_light},
+                        "linear_light": self.options.linear_light, "members": list(self.options.members)},
             "excluded": list(self.excluded),
         }
 
@@ -119,7 +120,8 @@ class Scene:
             targets=tuple(Target(**t) for t in d["targets"]),
             aperture=aperture_from_dict(d["aperture"]),
             options=Options(highlight=Highlight(**hl) if hl else None,
-                            linear_light=bool(d["options"].get("linear_light", True))),
+                            linear_light=bool(d["options"].get("linear_light", True)),
+                            members=tuple(d["options"].get("members", ()))),
             excluded=tuple(d.get("excluded", ())),
         )
 
@@ -265,7 +267,7 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int, 
     hr = recipe.render.highlight
     linear = recipe.render.linear_light  # highlights are light: the naive (sRGB) baseline has none
     options = Options(highlight=Highlight(hr.threshold, hr.gain, hr.power) if hr.enabled and linear else None,
-                      linear_light=linear)
+                      linear_light=linear, members=tuple(recipe.render.members))
 
     return Scene(
         key=sample_key(split, index), split=split, index=int(index), seed=seed, size=(H, W),

@@ -209,3 +209,38 @@ def test_planar_srgb_png_is_the_same_bytes():
         assert encode_srgb_png_planar(x) == encode_srgb_png(np.ascontiguousarray(x.transpose(1, 2, 0)))
     with pytest.raises(ValueError, match="3, H, W"):
         encode_srgb_png_planar(np.zeros((4, 4, 3), np.float32))
+
+
+def test_optional_members_coc_maps_and_layers(tmp_path):
+    """render.members = ["coc", "layers"]: coc.N.exr is max_coc * (depth - focus), the layers
+    composited back to front give the all-in-focus image, and the record says they are there."""
+    import re
+
+    from dofsynth.assets import build_library
+    from dofsynth.color import linear_to_srgb
+    from dofsynth.record import exr_handler
+    from dofsynth.recipe import recipe_from_text
+    from dofsynth.scene import sample_scene
+
+    root = Path(__file__).resolve().parents[1] / "recipes"
+    text = re.sub(r"(?m)^\[render\]$", '[render]\nmembers = ["coc", "layers"]', (root / "smoke.toml").read_text())
+    recipe = recipe_from_text(text, "smoke-members.toml", root)
+    scene = sample_scene(recipe, build_library(recipe), "train", 0)
+    m = render_sample(scene, build_library(recipe))
+    assert {"coc.0.exr", "layer.0.exr", "layer.1.exr", "layer.2.exr"} <= set(m)
+    d = decode_sample(m)
+    assert d["record"]["options"]["members"] == ["coc", "layers"]
+    for n, t in enumerate(d["record"]["targets"]):
+        coc = exr_handler(f"{d['key']}.coc.{n}.exr", m[f"coc.{n}.exr"])
+        assert np.array_equal(coc, np.float32(t["max_coc"]) * (d["depth"] - np.float32(t["focus"])))
+    comp = np.zeros(d["aif"].shape, np.float32)
+    for k in range(3):
+        layer = exr_handler("layer.exr", m[f"layer.{k}.exr"])
+        assert layer.shape == d["aif"].shape[:2] + (5,)
+        a = layer[:, :, 3:4]
+        comp = layer[:, :, :3] * a + (1 - a) * comp
+    hard = np.all((d["cover"] == 0) | (d["cover"] == 1), axis=2)
+    assert np.abs(linear_to_srgb(comp) - d["aif"])[hard].max() <= 0.5 / 255 + 1e-6
+    plain = render_sample(sample_scene(load_recipe(root / "smoke.toml"), build_library(recipe), "train", 0),
+                          build_library(recipe))
+    assert not any(k.startswith(("coc.", "layer.")) for k in plain)
