@@ -294,7 +294,7 @@ def test_tiny_sets_still_fill_both_splits():
 # ------------------------------------------------------------------------------ manifests
 def test_scan_command_writes_a_manifest(tmp_path, tiny_bg_dir, capsys):
     out = tmp_path / "pins" / "bg.json"
-    assert cli_main(["assets", "scan", str(tiny_bg_dir), "-o", str(out), "--licence", "CC0", "-q"]) == 0
+    assert cli_main(["assets", "scan", str(tiny_bg_dir), "--manifest", str(out), "--licence", "CC0", "-q"]) == 0
     doc = json.loads(out.read_text())
     assert doc["schema_version"] == 1 and doc["root"] == "../bg"
     files = {f["path"]: f for f in doc["files"]}
@@ -303,7 +303,7 @@ def test_scan_command_writes_a_manifest(tmp_path, tiny_bg_dir, capsys):
     assert (a["width"], a["height"], a["channels"], a["kind"], a["licence"]) == (96, 80, 3, "background", "CC0")
     assert a["bytes"] == (tiny_bg_dir / "a.png").stat().st_size
     assert "pinned 5 files" in capsys.readouterr().out
-    assert cli_main(["assets", "scan", str(tmp_path / "nowhere"), "-o", str(out)]) == 2
+    assert cli_main(["assets", "scan", str(tmp_path / "nowhere"), "--manifest", str(out)]) == 2
 
 
 def test_scan_reads_licences_from_sources_md(shared_assets, tmp_path):
@@ -322,7 +322,7 @@ def test_manifest_pin_refuses_changed_missing_and_new_files(write_recipe, tmp_pa
     shutil.move(str(tiny_bg_dir), root / "bg")
     shutil.move(str(tiny_cutouts), root / "fg")
     man = tmp_path / "pins" / "assets.json"
-    assert cli_main(["assets", "scan", str(root), "-o", str(man), "-q"]) == 0
+    assert cli_main(["assets", "scan", str(root), "--manifest", str(man), "-q"]) == 0
     recipe = load_recipe(write_recipe(backgrounds="assets/bg", foregrounds="assets/fg", manifest="pins/assets.json"))
     lib = build_library(recipe)
     assert len(lib.backgrounds) == 5 and len(lib.foregrounds) == 4
@@ -333,7 +333,7 @@ def test_manifest_pin_refuses_changed_missing_and_new_files(write_recipe, tmp_pa
     (root / "bg" / "a.png").unlink()                                  # missing
     with pytest.raises(AssetError, match=r"bg/a\.png: missing"):
         build_library(recipe)
-    assert cli_main(["assets", "scan", str(root), "-o", str(man), "-q"]) == 0
+    assert cli_main(["assets", "scan", str(root), "--manifest", str(man), "-q"]) == 0
     build_library(recipe)
     write_png(root / "fg" / "new.png", np.dstack([noise_rgb(80, 80, 1), blob_alpha(80, 80, 1)]))
     with pytest.raises(AssetError, match=r"fg/new\.png: not in the pinning manifest"):

@@ -133,7 +133,7 @@ def test_default_path_and_cli(smoke_set, tmp_path, capsys):
     lay = sheets.sheet_layout(2, 2, (64, 64), 192)
     assert read_image(p).shape == (lay.height, lay.width, 3)
     out = tmp_path / "cli.png"
-    assert main(["sheet", str(smoke_set), "--split", "train", "--n", "2", "--thumb", "96", "--out", str(out)]) == 0
+    assert main(["sheet", str(smoke_set), "--split", "train", "--n", "2", "--thumb", "96", "--png", str(out)]) == 0
     assert capsys.readouterr().out.strip() == str(out)
     lay = sheets.sheet_layout(2, 2, (64, 64), 96)
     assert read_image(out).shape == (lay.header_h + 2 * lay.row_h, lay.width, 3)

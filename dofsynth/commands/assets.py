@@ -10,7 +10,7 @@ KIND_CHOICES = ("background", "foreground")
 def run_scan(args: argparse.Namespace) -> int:
     from dofsynth.assets.pins import pin_folder, write_pins
 
-    out = Path(args.output)
+    out = Path(args.manifest)
     manifest = pin_folder(Path(args.dir), out.parent, args.kind, args.licence, progress=not args.quiet,
                           decode=not args.header, fg_dir=args.fg_dir, alpha_dir=args.alpha_dir)
     write_pins(out, manifest)
@@ -84,9 +84,9 @@ def register(subparsers) -> None:
                     "`file` and `licence`) in DIR, its parent or its subfolders, else from --licence, "
                     "else 'unknown'. Every file is decoded (--header: headers only); unreadable ones are "
                     "listed under `skipped` with their reason, never pinned.",
-        epilog="Example: dofsynth assets scan recipes/assets -o data_manifest/sources/deeplens.json")
+        epilog="Example: dofsynth assets scan my-assets --manifest data_manifest/sources/mine.json")
     s.add_argument("dir", metavar="DIR", help="the asset folder to pin")
-    s.add_argument("-o", "--output", required=True, metavar="OUT.json", help="the manifest file to write")
+    s.add_argument("--manifest", required=True, metavar="FILE.json", help="the pinning manifest to write")
     s.add_argument("--kind", choices=KIND_CHOICES, default=None,
                    help="the kind of every file (files under an alpha/ folder stay 'alpha'); default: "
                         "fg/ = foreground, bg/ = background, else by alpha channel")

@@ -21,7 +21,7 @@ def register(subparsers) -> None:
     p.add_argument("--split", default="test", help="which split to show (default: test)")
     p.add_argument("--n", type=int_at_least(1), default=24, help="how many samples, one row each (default: 24)")
     p.add_argument("--seed", type=int, default=0, help="picks the samples; the same seed shows the same ones (default: 0)")
-    p.add_argument("--out", dest="path", default=None, metavar="PNG",
+    p.add_argument("--png", dest="path", default=None, metavar="PNG",
                    help="where to write the sheet (default: OUT/sheet-SPLIT.png)")
     p.add_argument("--thumb", type=int, default=192, help="tile height in pixels (default: 192)")
     p.add_argument("--html", default=None, metavar="DIR",
