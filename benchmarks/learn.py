@@ -42,13 +42,14 @@ ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "learn.toml"
 CONFIG = ROOT / "recipes" / "train-learn.toml"
 
-NETWORKS = {  # [model] overrides, each measured against the shipped config
-    "shipped": {},
-    "paper": {"features": "channel", "raw_feature": False, "kernel": "free", "norm": "none", "up_depth": 0},
-    "joint+raw features": {"features": "joint", "raw_feature": True},
-    "blur kernels": {"kernel": "blur"},
-    "batch norm": {"norm": "batch"},
-    "large upsampler": {"up_width": 32, "up_depth": 3},
+PAPER = {"features": "channel", "raw_feature": False, "kernel": "free", "norm": "none", "up_width": 16, "up_depth": 0}
+NETWORKS = {  # [model] settings: the paper's network, then each official-code option alone, all of them
+    "shipped (the default)": {},
+    "paper": PAPER,
+    "joint+raw features": {**PAPER, "features": "joint", "raw_feature": True},
+    "blur kernels": {**PAPER, "kernel": "blur"},
+    "batch norm": {**PAPER, "norm": "batch"},
+    "large upsampler": {**PAPER, "up_width": 32, "up_depth": 3},
     "all official": {"features": "joint", "raw_feature": True, "kernel": "blur", "norm": "batch",
                      "up_width": 32, "up_depth": 3},
 }

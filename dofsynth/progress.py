@@ -106,3 +106,9 @@ def track(items, desc: str, unit: str = "sample", *, enabled: bool = True):
         for x in items:
             yield x
             b.update(1)
+
+
+def say(*args, **kw) -> None:
+    """print() of a summary line (what was written where): nothing when quiet."""
+    if not quiet():
+        print(*args, **kw)

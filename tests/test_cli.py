@@ -69,3 +69,10 @@ def test_redirected_progress_prints_lines_not_carriage_return_frames(capsys):
     finally:
         progress.set_verbosity()
     assert capsys.readouterr().err == ""
+
+
+def test_quiet_silences_the_summary_lines(tmp_path, capsys):
+    assert main(["recipes", "copy", "smoke", str(tmp_path), "-q"]) == 0
+    assert capsys.readouterr().out == "" and (tmp_path / "smoke.toml").is_file()
+    assert main(["recipes", "copy", "demo", str(tmp_path)]) == 0
+    assert "copied demo.toml" in capsys.readouterr().out

@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dofsynth.progress import say
+
 KIND_CHOICES = ("background", "foreground")
 
 
@@ -18,10 +20,10 @@ def run_scan(args: argparse.Namespace) -> int:
     for f in manifest["files"]:
         kinds[f["kind"]] = kinds.get(f["kind"], 0) + 1
     summary = ", ".join(f"{n} {k}" for k, n in sorted(kinds.items())) or "no images"
-    print(f"{out}: pinned {len(manifest['files'])} files ({summary}); skipped {len(manifest['skipped'])}"
+    say(f"{out}: pinned {len(manifest['files'])} files ({summary}); skipped {len(manifest['skipped'])}"
           + (":" if manifest["skipped"] else ""))
     for s in manifest["skipped"]:
-        print(f"  {s['path']}: {s['reason']}")
+        say(f"  {s['path']}: {s['reason']}")
     return 0
 
 

@@ -5,6 +5,8 @@ import argparse
 import os
 from pathlib import Path
 
+from dofsynth.progress import say
+
 
 
 def register(subparsers) -> None:
@@ -34,10 +36,10 @@ def run(args) -> int:
     recipe = load_recipe(args.recipe)
     sweep_path = out / "demo.png"
     write_png(sweep_path, focus_sweep_strip(recipe, build_library(recipe)))
-    print(f"focus sweep: {sweep_path}")
+    say(f"focus sweep: {sweep_path}")
     data = out / recipe.name
     generate(recipe, data, workers=args.workers, resume=True)
     sheet = write_sheet(data, split="test", n=8, seed=0, path=out / f"{recipe.name}-sheet.png")
-    print(f"data set:      {data}/manifest.json")
-    print(f"contact sheet: {sheet}")
+    say(f"data set:      {data}/manifest.json")
+    say(f"contact sheet: {sheet}")
     return 0

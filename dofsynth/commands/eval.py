@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dofsynth.commands import int_at_least
+from dofsynth.progress import say
 
 
 def register(subparsers) -> None:
@@ -27,7 +28,7 @@ def register(subparsers) -> None:
                    help="the disparity everyone is given: gt (clean), run (the run's own training "
                         "corruption), morph, edge_blur, noise, quantize or shift (that kind alone, always, "
                         "with the default [augment] ranges), or a TOML file whose [augment] table is the "
-                        "setting (e.g. a training config); default: run")
+                        "setting (a training config, or a shipped one by name: train-learn); default: run")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"], help="default: cuda when available")
     p.set_defaults(func=run)
 
@@ -44,5 +45,5 @@ def run(args) -> int:
     result = evaluate_run(args.run_dir, args.data, split=args.split, limit=args.limit,
                           classical=not args.no_classical, depth=args.depth, device=args.device)
     print(format_table(result))
-    print(f"written: {Path(args.run_dir) / 'eval.csv'}, {Path(args.run_dir) / 'eval.json'}")
+    say(f"written: {Path(args.run_dir) / 'eval.csv'}, {Path(args.run_dir) / 'eval.json'}")
     return 0

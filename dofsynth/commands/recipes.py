@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dofsynth.progress import say
+
 EPILOG = """\
 examples:
   dofsynth recipes list
@@ -56,5 +58,5 @@ def run(args) -> int:
     if dst.exists() and not args.force:
         raise FileExistsError(f"{dst}: exists (use --force to replace it)")
     atomic_write_bytes(dst, src.read_bytes())
-    print(f"copied {src.name} to {dst} (its relative asset paths now mean relative to {args.dir})")
+    say(f"copied {src.name} to {dst} (its relative asset paths now mean relative to {args.dir})")
     return 0

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from dofsynth.commands import float_at_least
+from dofsynth.progress import say
 
 DESCRIPTION = """\
 Render synthetic shallow depth of field for a single photo and its disparity map, in linear
@@ -145,5 +146,5 @@ def run(args) -> int:
     _write(out, np.asarray(result, dtype=np.float32))
     how = (f"network {args.model}, aperture scale {args.aperture_scale}" if args.model is not None
            else f"max CoC {args.max_coc} px, aperture {args.aperture}")
-    print(f"wrote {out} (focus {focus:.4f}, {how})")
+    say(f"wrote {out} (focus {focus:.4f}, {how})")
     return 0

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dofsynth.commands import int_at_least
+from dofsynth.progress import say
 
 
 def register(subparsers) -> None:
@@ -38,9 +39,9 @@ def run(args) -> int:
     if not 16 <= args.thumb <= 2048:
         raise ValueError(f"--thumb must be between 16 and 2048 pixels, got {args.thumb}")
     path = write_sheet(args.out, split=args.split, n=args.n, seed=args.seed, path=args.path, thumb=args.thumb)
-    print(path)
+    say(path)
     if args.html:
         page = write_html(args.out, args.html, split=args.split, n=args.n, seed=args.seed,
                           sweep=args.sweep, sweep_steps=args.sweep_steps, thumb=args.thumb)
-        print(page)
+        say(page)
     return 0

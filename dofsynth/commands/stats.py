@@ -1,6 +1,8 @@
 """`dofsynth stats OUT`: histograms and counts of a data set, as a chart and as JSON."""
 from __future__ import annotations
 
+from dofsynth.progress import say
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -35,7 +37,7 @@ def run(args) -> int:
         h = st["histograms"]
         print(f"{split}: {st['samples']} samples, {h['focus']['total']} targets, "
               f"{h['coc']['total']} target pixels; backgrounds {st['counts']['background_mode']}")
-    print(png)
+    say(png)
     if js:
-        print(js)
+        say(js)
     return 0

@@ -62,7 +62,7 @@ class ModelConfig:
     features: str = key("channel", choices=("channel", "joint"))  # per-colour conv stack (paper) or one RGB stack
     raw_feature: bool = key(False)                          # the image itself is one of the c features (+1)
     kernel: str = key("free", choices=("free", "blur"))      # "blur": kernels >= 0 summing to 1 (softmax)
-    norm: str = key("none", choices=("none", "batch", "group"))  # after each conv of the predictor / upsampler
+    norm: str = key("batch", choices=("none", "batch", "group"))  # after each conv of the predictor / upsampler (measured best)
     up_width: int = key(16, lo=1)                           # guided upsampler feature width
     up_depth: int = key(0, lo=0)                            # U-Net levels of its low-res branch (0: two convs)
     coc_ref: float = key(0.0, lo=0.0)                       # r_max: max CoC radius (full-res px) of the largest

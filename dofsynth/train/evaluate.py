@@ -9,7 +9,8 @@ For every sample and every one of its DoF targets, the same disparity goes to
 and, as a floor, "all-in-focus" (the input itself). Which disparity (`depth`): "gt" (the
 clean one), "run" (the run's own training corruption), one corruption kind alone at
 probability 1 with the default ranges of [augment] (see `DEPTH_KINDS`), or a TOML file whose
-[augment] table is the setting; always drawn with the evaluation seed, so runs trained
+[augment] table is the setting (a shipped training config by name too, e.g. "train-learn");
+always drawn with the evaluation seed, so runs trained
 differently are scored on the same inputs. PSNR and SSIM (skimage.metrics, sRGB in [0, 1],
 data_range 1) are taken against the rendered target, and PSNR also in the band within the
 target's max CoC of a depth edge of the clean disparity ("psnr_edge"), where a single-image
@@ -51,10 +52,11 @@ def depth_corruption(depth: str, run_augment: AugmentConfig) -> AugmentConfig:
     if depth in DEPTH_KINDS:
         off = {f: 0.0 for f in DEPTH_KINDS.values()}
         return dataclasses.replace(AugmentConfig(), **{**off, DEPTH_KINDS[depth]: 1.0})
-    if depth.endswith(".toml"):
-        return load(depth).augment
-    raise ValueError(f"depth must be gt, run, one of {', '.join(DEPTH_KINDS)} or a .toml file "
-                     f"with an [augment] table, got {depth!r}")
+    try:
+        return load(depth).augment  # a TOML file, or a shipped training config by name
+    except FileNotFoundError:
+        raise ValueError(f"depth must be gt, run, one of {', '.join(DEPTH_KINDS)}, a .toml file with an "
+                         f"[augment] table or a shipped training config's name, got {depth!r}") from None
 
 
 def _hwc(t: torch.Tensor) -> np.ndarray:
