@@ -14,7 +14,8 @@ under an hour.
    corrupted depth (the [augment] setting of recipes/train-learn.toml, drawn with the
    evaluation seed): the trained network, the classical renderer (one image, the options that
    made the targets), the all-in-focus input; PSNR, SSIM and PSNR in the band within max CoC
-   of a depth edge. The validation PSNR curve of the main run is printed too.
+   of a depth edge; then the paper's loss J against J plus an L1 term. The validation PSNR
+   curve of the main run is printed too.
 Every size (image, crops, low resolution, steps, batch, parameters) is printed. Runs go to
 OUT/runs/<name>; a finished run is reused (delete it to train again).
 """
@@ -86,7 +87,7 @@ def score(folder: Path, data: Path) -> dict:
 
 
 def row(name: str, r: dict, c: int | None = None) -> str:
-    cs = f"{c:>4}" if c is not None else ""
+    cs = f" {c:>4} |" if c is not None else ""
     return f"| {name:<26} |{cs} {r['psnr']:>6.2f} | {r['ssim']:.4f} | {r['psnr_edge']:>6.2f} |"
 
 
@@ -134,6 +135,12 @@ def part_main(base, data: Path, out: Path) -> None:
     print("| trained on                 | PSNR dB | SSIM | edge dB |\n|---|---|---|---|")
     print(row("corrupted depth", table["network"]))
     print(row("clean depth", score(clean, data)["network"]))
+
+    print("\n### The paper's loss J vs J + an L1 term (loss.l1 = 1; tested on corrupted depth)\n")
+    l1 = run("c=32 corrupted, J + L1", replace(base, "loss", l1=1.0), data, out)
+    print("| loss                       | PSNR dB | SSIM | edge dB |\n|---|---|---|---|")
+    print(row("J (the paper's)", table["network"]))
+    print(row("J + L1", score(l1, data)["network"]))
 
     print("\n### Validation PSNR of the main run (held-out share of train)\n")
     with open(main_run / "log.csv") as fh:

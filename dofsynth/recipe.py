@@ -11,6 +11,7 @@ resolved against the recipe's folder; the value "builtin" selects the built-in a
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from dofsynth.files import sha256_bytes
 from dofsynth.shipped import recipe_path
 from dofsynth.optics.aperture import APERTURES
 from dofsynth.optics.coc import MAX_COC_PER_SIDE
+from dofsynth.optics.lens import ThinLens
 
 BUILTIN = "builtin"
 dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
@@ -75,11 +77,22 @@ class SceneRules:
 
 
 @dataclass_kw
+class LensRules:
+    enabled: bool = key(False)                       # max_coc from a thin lens per target (dofsynth.optics.lens)
+    focal_length_mm: Range = key((35.0, 85.0), lo=1.0, hi=2000.0)  # drawn per target
+    f_number: Range = key((1.4, 4.0), lo=0.5, hi=64.0)             # drawn per target
+    sensor_width_mm: float = key(36.0, lo=1.0, hi=100.0)
+    near_m: float = key(1.0, lo=0.01, hi=1e6)        # distance of disparity 1
+    far_m: float = key(0.0, lo=0.0, hi=1e9)          # distance of disparity 0; 0 = infinity
+
+
+@dataclass_kw
 class FocusRules:
     targets_per_scene: int = key(1, lo=1, hi=64)
     plane_share: float = key(0.5, lo=0.0, hi=1.0)    # probability a target focuses exactly on a plane
     min_separation: float = key(0.05, lo=0.0, hi=0.5)  # least disparity between the focus of two targets
     max_coc: Range = key(lo=0.0, hi=512.0)           # max circle-of-confusion radius, px at the output size
+    lens: LensRules = table(LensRules)
 
 
 @dataclass_kw
@@ -145,6 +158,8 @@ def _check(r: Recipe, file: str) -> None:
     if bad:
         raise error(file, "render.members", f"distinct names among {list(OPTIONAL_MEMBERS)}", list(r.render.members))
     fo = r.focus
+    if fo.lens.enabled:
+        _check_lens(r, file)
     if (fo.targets_per_scene - 1) * fo.min_separation > 0.5:
         raise error(file, "focus.min_separation", f"at most {0.5 / max(fo.targets_per_scene - 1, 1):.3g} for "
                     f"{fo.targets_per_scene} targets per scene (they must fit into half the disparity range)",
@@ -164,6 +179,28 @@ def _check(r: Recipe, file: str) -> None:
     if fg.f0[1] < fg.f1[1] + gap:
         raise error(file, "scene.foreground.f0", f"a high end >= {fg.f1[1] + gap:g} (scene.foreground.f1 high "
                     "end + min_gap) so the front plane can be in front", list(fg.f0))
+
+
+def recipe_lens(r: Recipe, focal_length_mm: float, f_number: float):
+    """The ThinLens of a recipe's [focus.lens] with a drawn focal length and f-number."""
+    lr = r.focus.lens
+    return ThinLens(focal_length_mm, f_number, lr.sensor_width_mm, lr.near_m, lr.far_m or math.inf)
+
+
+def _check_lens(r: Recipe, file: str) -> None:
+    """The lens's largest blur (longest focal length, widest aperture, focus at `near`) must stay
+    within focus.max_coc's high end, which the trainer takes as r_max."""
+    lr = r.focus.lens
+    if lr.far_m and lr.far_m <= lr.near_m:
+        raise error(file, "focus.lens.far_m", f"0 (infinity) or more than near_m {lr.near_m}", lr.far_m)
+    try:
+        worst = recipe_lens(r, lr.focal_length_mm[1], lr.f_number[0]).max_coc(lr.near_m, r.frame[1])
+    except ValueError as exc:
+        raise error(file, "focus.lens", "a lens that can focus on the scene", str(exc)) from None
+    if worst > r.focus.max_coc[1]:
+        raise error(file, "focus.max_coc", f"a high end >= {worst:.4g} px, the largest blur [focus.lens] gives "
+                    f"(focal length {lr.focal_length_mm[1]:g} mm at f/{lr.f_number[0]:g} focused at {lr.near_m:g} m)",
+                    list(r.focus.max_coc))
 
 
 def _resolve(folder: str, base: Path) -> str:

@@ -35,7 +35,7 @@ from dofsynth.assets import Asset, AssetLibrary
 from dofsynth.assets.fit import largest_crop
 from dofsynth.optics.aperture import APERTURES, Aperture, aperture_from_dict
 from dofsynth.placement import ObjectParams, draw_object, visible_shares
-from dofsynth.recipe import Recipe
+from dofsynth.recipe import Recipe, recipe_lens
 from dofsynth.rng import draw_uniform, sample_key, sample_rng, sample_seed
 
 @dataclass(frozen=True)
@@ -60,6 +60,11 @@ class BackgroundParams:
 class Target:
     focus: float                    # focus disparity in [0, 1]
     max_coc: float                  # px at the output size
+    lens: dict | None = None        # the thin lens behind it, if the recipe has one (ThinLens.to_dict)
+
+    def to_dict(self) -> dict:
+        d = {"focus": self.focus, "max_coc": self.max_coc}
+        return d if self.lens is None else {**d, "lens": dict(self.lens)}
 
 
 @dataclass(frozen=True)
@@ -100,7 +105,7 @@ class Scene:
             "assets": {k: asdict(self.assets[k]) for k in ("background", "front", "middle")},
             "background": {**asdict(self.background), "crop": list(self.background.crop)},
             "front": _object_dict(self.front), "middle": _object_dict(self.middle),
-            "targets": [asdict(t) for t in self.targets],
+            "targets": [t.to_dict() for t in self.targets],
             "aperture": self.aperture.to_dict(),
             "options": {"highlight": asdict(self.options.highlight) if self.options.highlight else None,
                         "linear_light": self.options.linear_light, "members": list(self.options.members)},
@@ -259,7 +264,12 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int, 
     targets: list[Target] = []
     for _ in range(fo.targets_per_scene):
         focus = _draw_focus(rng, fo.plane_share, (b1, b0), f1, f0, [t.focus for t in targets], fo.min_separation)
-        targets.append(Target(focus=focus, max_coc=draw_uniform(rng, *fo.max_coc)))
+        if fo.lens.enabled:  # a thin lens: its focal length and f-number drawn, max_coc follows
+            lens = recipe_lens(recipe, draw_uniform(rng, *fo.lens.focal_length_mm), draw_uniform(rng, *fo.lens.f_number))
+            distance = lens.distance(focus)
+            targets.append(Target(focus=focus, max_coc=lens.max_coc(distance, W), lens=lens.to_dict(distance)))
+        else:
+            targets.append(Target(focus=focus, max_coc=draw_uniform(rng, *fo.max_coc)))
 
     # 6. aperture and options
     ar = recipe.render.aperture
