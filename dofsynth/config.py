@@ -6,7 +6,8 @@ Every problem raises `ConfigError` naming the file, the dotted key and what was 
 a wrong type, a value out of range, a missing required key, an unknown key or table (unknown
 keys are reported first: a typo would otherwise surface as a "missing key" elsewhere). Field
 types: bool, int, float, str, `Range` (`[low, high]` floats, a single number meaning
-`[x, x]`), `IntRange`, `tuple[int, ...]`, `tuple[str, ...]` (a string or a list of them) and
+`[x, x]`), `IntRange`, `tuple[int, ...]`, `tuple[float, ...]`, `tuple[str, ...]` (a string or a
+list of them) and
 nested dataclasses (TOML tables). A field with `toml=False` is not read (set by the loader).
 """
 from __future__ import annotations
@@ -110,11 +111,12 @@ def _value(tp, v, s: Spec, dotted: str, file: str):
         if a > b or not _in_bounds(a, s) or not _in_bounds(b, s):
             raise error(file, dotted, want, list(v))
         return (a, b)
-    if tp == tuple[int, ...]:
-        want = f"a non-empty list of integers{_bounds(s, 'each')}"
-        if not isinstance(v, list) or not v or not all(_is_int(x) and _in_bounds(x, s) for x in v):
+    if tp in (tuple[int, ...], tuple[float, ...]):
+        ok, kind = (_is_int, "integers") if tp == tuple[int, ...] else (_is_num, "numbers")
+        want = f"a non-empty list of {kind}{_bounds(s, 'each')}"
+        if not isinstance(v, list) or not v or not all(ok(x) and _in_bounds(x, s) for x in v):
             raise error(file, dotted, want, v)
-        return tuple(v)
+        return tuple(v) if tp == tuple[int, ...] else tuple(float(x) for x in v)
     if tp == tuple[str, ...]:
         items = [v] if isinstance(v, str) else v
         if not isinstance(items, list) or not all(isinstance(x, str) and x for x in items):

@@ -117,6 +117,7 @@ OPTIONAL_MEMBERS = ("coc", "layers")  # coc.N.exr per target; layer.K.exr per pl
 class RenderRules:
     linear_light: bool = key(True)
     members: tuple[str, ...] = key(())   # optional members per sample: any of OPTIONAL_MEMBERS
+    chromatic: tuple[float, ...] = key((1.0, 1.0, 1.0), lo=0.25, hi=4.0)  # CoC scale of R, G, B (longitudinal CA)
     aperture: ApertureRules = table(ApertureRules)
     highlight: HighlightRules = table(HighlightRules)
 
@@ -154,6 +155,11 @@ def _check(r: Recipe, file: str) -> None:
     """The rules between keys: at least one sample, a ramp that falls, planes in front."""
     if r.samples.train + r.samples.test == 0:
         raise ConfigError(f"{file}: samples: expected at least one sample in train or test, got 0")
+    if len(r.render.chromatic) != 3:
+        raise error(file, "render.chromatic", "three CoC scales (R, G, B)", list(r.render.chromatic))
+    if max(r.render.chromatic) * r.focus.max_coc[1] > MAX_COC_PER_SIDE * r.size:
+        raise error(file, "render.chromatic", f"scales that keep max_coc * scale <= {MAX_COC_PER_SIDE * r.size}",
+                    list(r.render.chromatic))
     bad = [m for m in r.render.members if m not in OPTIONAL_MEMBERS] or len(set(r.render.members)) < len(r.render.members)
     if bad:
         raise error(file, "render.members", f"distinct names among {list(OPTIONAL_MEMBERS)}", list(r.render.members))

@@ -69,7 +69,7 @@ def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
         planes = [replace(p, rgb=linear_to_srgb(p.rgb)) for p in planes]
     for n, t in enumerate(scene.targets):
         if linear_light:  # planar (3, H, W): encoded in row blocks, no interleaved frame copy
-            img = render_planes(planes, float(t.focus), float(t.max_coc), scene.aperture, planar=True)
+            img = _render_target(planes, t, scene)
             if hl is not None:
                 unboost(img, **hl, out=img, axis=0)
             members[f"dof.{n}.png"] = encode_srgb_png_planar(img)
@@ -79,6 +79,18 @@ def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
         del img
     members["json"] = encode_record(sample_record(scene))
     return members
+
+
+def _render_target(planes, t: Target, scene: Scene):
+    """Target t, planar (3, H, W) linear; with longitudinal chromatic aberration each channel is
+    the render at its own CoC scale (max_coc * chromatic[ch]), three renders instead of one."""
+    scales = scene.options.chromatic
+    img = render_planes(planes, float(t.focus), float(t.max_coc) * scales[1], scene.aperture, planar=True)
+    for ch in (0, 2):
+        if scales[ch] != scales[1]:
+            img[ch] = render_planes(planes, float(t.focus), float(t.max_coc) * scales[ch], scene.aperture,
+                                    planar=True)[ch]
+    return img
 
 
 def focus_sweep(scene: Scene, library: AssetLibrary, focuses, max_coc: float | None = None) -> dict[str, bytes]:

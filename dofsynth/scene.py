@@ -79,6 +79,7 @@ class Options:
     highlight: Highlight | None
     linear_light: bool
     members: tuple[str, ...] = ()   # optional members written: "coc", "layers" (recipe render.members)
+    chromatic: tuple[float, float, float] = (1.0, 1.0, 1.0)  # CoC scale per colour channel (R, G, B)
 
 
 @dataclass(frozen=True)
@@ -108,7 +109,8 @@ class Scene:
             "targets": [t.to_dict() for t in self.targets],
             "aperture": self.aperture.to_dict(),
             "options": {"highlight": asdict(self.options.highlight) if self.options.highlight else None,
-                        "linear_light": self.options.linear_light, "members": list(self.options.members)},
+                        "linear_light": self.options.linear_light, "members": list(self.options.members),
+                        **({"chromatic": list(self.options.chromatic)} if self.options.chromatic != (1.0, 1.0, 1.0) else {})},
             "excluded": list(self.excluded),
         }
 
@@ -126,7 +128,8 @@ class Scene:
             aperture=aperture_from_dict(d["aperture"]),
             options=Options(highlight=Highlight(**hl) if hl else None,
                             linear_light=bool(d["options"].get("linear_light", True)),
-                            members=tuple(d["options"].get("members", ()))),
+                            members=tuple(d["options"].get("members", ())),
+                            chromatic=tuple(float(v) for v in d["options"].get("chromatic", (1.0, 1.0, 1.0)))),
             excluded=tuple(d.get("excluded", ())),
         )
 
@@ -277,7 +280,8 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int, 
     hr = recipe.render.highlight
     linear = recipe.render.linear_light  # highlights are light: the naive (sRGB) baseline has none
     options = Options(highlight=Highlight(hr.threshold, hr.gain, hr.power) if hr.enabled and linear else None,
-                      linear_light=linear, members=tuple(recipe.render.members))
+                      linear_light=linear, members=tuple(recipe.render.members),
+                      chromatic=tuple(float(v) for v in recipe.render.chromatic))
 
     return Scene(
         key=sample_key(split, index), split=split, index=int(index), seed=seed, size=(H, W),

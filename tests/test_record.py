@@ -244,3 +244,35 @@ def test_optional_members_coc_maps_and_layers(tmp_path):
     plain = render_sample(sample_scene(load_recipe(root / "smoke.toml"), build_library(recipe), "train", 0),
                           build_library(recipe))
     assert not any(k.startswith(("coc.", "layer.")) for k in plain)
+
+
+def test_longitudinal_chromatic_aberration_scales_each_channels_coc():
+    """render.chromatic = [0.8, 1.0, 1.25]: the boosted target's red is the render at 0.8 x
+    max_coc, green the plain one, blue at 1.25 x, before the highlight inverse maps the result
+    back; the record keeps the scales."""
+    import re
+
+    from dofsynth.assets import build_library
+    from dofsynth.recipe import recipe_from_text
+    from dofsynth.scene import sample_scene
+
+    root = Path(__file__).resolve().parents[1] / "recipes"
+    base = (root / "smoke.toml").read_text()
+    text = re.sub(r"(?m)^\[render\]$", "[render]\nchromatic = [0.8, 1.0, 1.25]", base)
+    recipe = recipe_from_text(text, "smoke-lca.toml", root)
+    library = build_library(recipe)
+    scene = sample_scene(recipe, library, "train", 1)
+    assert scene.to_dict()["options"]["chromatic"] == [0.8, 1.0, 1.25]
+    d = decode_sample(render_sample(scene, library))
+    layers = scene_layers(scene, library)
+    hl = scene.to_dict()["options"]["highlight"]
+    planes = [Plane(boost(p.rgb, **hl), p.alpha, p.disparity, p.box) for p in layers.planes]
+    ap = aperture_from_dict(scene.aperture.to_dict())
+    t = scene.targets[0]
+    mixed = np.stack([render_planes(planes, t.focus, t.max_coc * s, ap)[:, :, ch]
+                      for ch, s in enumerate((0.8, 1.0, 1.25))], axis=2)
+    assert np.array_equal(to_uint8(d["dof"][0]), linear_to_srgb8(unboost(mixed, **hl)))
+    same = render_planes(planes, t.focus, t.max_coc, ap)
+    assert not np.array_equal(mixed[:, :, 0], same[:, :, 0])      # red really is defocused differently
+    plain = sample_scene(recipe_from_text(base, "smoke.toml", root), library, "train", 1)
+    assert "chromatic" not in plain.to_dict()["options"]
