@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dofsynth.commands import float_at_least
+from dofsynth.commands import float_at_least, int_at_least
 from dofsynth.progress import say
 
 DESCRIPTION = """\
@@ -61,8 +61,11 @@ def register(subparsers) -> None:
     p.add_argument("--highlight", action="store_true",
                    help="boost near-white pixels to brighter-than-white before blurring, so highlights "
                         "become bright bokeh discs, and map the result back (dofsynth.highlight; not with --model)")
-    p.add_argument("--method", choices=("layered", "exact"), default="layered",
-                   help="layered (fast, default) or exact (aperture sampling; slow, for small images)")
+    p.add_argument("--method", choices=("layered", "subaperture", "exact"), default="layered",
+                   help="layered (fast, default), subaperture (--cells N: N x N aperture cells, about N^2 "
+                        "times the cost) or exact (aperture sampling; slow, for small images)")
+    p.add_argument("--cells", type=int_at_least(1), default=3, metavar="N",
+                   help="with --method subaperture: an N x N grid of aperture cells, 1..16 (default 3)")
     p.add_argument("--model", metavar="RUN", default=None,
                    help="render with a trained network from training run folder RUN instead")
     p.add_argument("--aperture-scale", type=_nonneg, default=1.0, metavar="S",
@@ -140,7 +143,8 @@ def run(args) -> int:
             rgb = boost(rgb)
         plane = Plane(rgb, np.ones(disparity.shape, np.float32), disparity)
         with scipy.fft.set_workers(os.cpu_count() or 1):
-            result = render_planes([plane], focus, args.max_coc, aperture, method=args.method)
+            cells = args.cells if args.method == "subaperture" else 1
+            result = render_planes([plane], focus, args.max_coc, aperture, method=args.method, cells=cells)
         if args.highlight:
             result = unboost(result, out=result)
     _write(out, np.asarray(result, dtype=np.float32))
