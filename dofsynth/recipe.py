@@ -110,7 +110,8 @@ class HighlightRules:
     power: float = key(2.0, lo=0.0, hi=16.0, lo_open=True)
 
 
-OPTIONAL_MEMBERS = ("coc", "layers")  # coc.N.exr per target; layer.K.exr per plane (docs/FORMAT.md)
+# coc.N.exr per target; layer.K.exr per plane; dp.N.left/right.png per target (docs/FORMAT.md)
+OPTIONAL_MEMBERS = ("coc", "layers", "dual_pixel")
 
 
 @dataclass_kw

@@ -128,6 +128,10 @@ MEMBERS = [
      "meaning": "optional (render.members coc): signed CoC radius of target N, max_coc * (disparity - focus)"},
     {"name": "layer.K.exr", "type": "EXR", "dtype": "float32", "channels": "R, G, B, A, disparity", "range": "linear",
      "meaning": "optional (render.members layers): plane K = 0 background, 1 middle, 2 front before blur"},
+    {"name": "dp.N.left.png", "type": "PNG", "dtype": "uint8", "channels": "RGB", "range": "0-255",
+     "meaning": "optional (render.members dual_pixel): target N through the left half of the aperture, sRGB"},
+    {"name": "dp.N.right.png", "type": "PNG", "dtype": "uint8", "channels": "RGB", "range": "0-255",
+     "meaning": "optional (render.members dual_pixel): target N through the right half of the aperture, sRGB"},
 ]
 CONVENTIONS = {
     "disparity": "normalized disparity in [0, 1]: 1 = nearest, 0 = infinity",

@@ -8,8 +8,10 @@ re-rendered from its JSON record alone (`verify --deep`, focus sweeps):
 - `aif.png`: the same with no blur, `unboost(composite(boost(planes)))`, so a target equals it
   wherever nothing that reaches a pixel is blurred;
 - `depth.exr`, `cover.png`: the disparity map and the two coverages (dofsynth.record);
-- with the recipe's `render.members`: `coc.N.exr` (target N's signed CoC map) and
-  `layer.K.exr` (each plane before blur and boost).
+- with the recipe's `render.members`: `coc.N.exr` (target N's signed CoC map),
+  `layer.K.exr` (each plane before blur and boost) and `dp.N.left.png` / `dp.N.right.png`
+  (the left and right halves of the aperture: a dual-pixel pair; `dof.N.png` is then their
+  area-weighted sum, a two-cell sub-aperture render).
 With `options.linear_light = false` (the naive baseline, no highlight handling) the planes are
 sRGB-encoded before the blur and the result is stored as it is.
 """
@@ -27,6 +29,7 @@ from dofsynth.record import (encode_alphas, encode_coc, encode_depth, encode_lay
                              encode_srgb_png_planar,
                              encode_srgb_png_rows, sample_record)
 from dofsynth.render import render_planes
+from dofsynth.render.subaperture import halves
 from dofsynth.scene import Scene, Target
 
 
@@ -68,7 +71,19 @@ def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
     if not linear_light:  # the naive baseline: blur sRGB-encoded values, store them as they are
         planes = [replace(p, rgb=linear_to_srgb(p.rgb)) for p in planes]
     for n, t in enumerate(scene.targets):
-        if linear_light:  # planar (3, H, W): encoded in row blocks, no interleaved frame copy
+        if linear_light and "dual_pixel" in extra:  # the two half-aperture views; the target is their sum
+            (left, wl), (right, wr) = halves(scene.aperture)
+            views = [_render_target(planes, t, scene, left), _render_target(planes, t, scene, right)]
+            img = views[0] * np.float32(wl) + views[1] * np.float32(wr)
+            for side, view in zip(("left", "right"), views):
+                if hl is not None:
+                    unboost(view, **hl, out=view, axis=0)
+                members[f"dp.{n}.{side}.png"] = encode_srgb_png_planar(view)
+            del views
+            if hl is not None:
+                unboost(img, **hl, out=img, axis=0)
+            members[f"dof.{n}.png"] = encode_srgb_png_planar(img)
+        elif linear_light:  # planar (3, H, W): encoded in row blocks, no interleaved frame copy
             img = _render_target(planes, t, scene)
             if hl is not None:
                 unboost(img, **hl, out=img, axis=0)
@@ -81,15 +96,15 @@ def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
     return members
 
 
-def _render_target(planes, t: Target, scene: Scene):
-    """Target t, planar (3, H, W) linear; with longitudinal chromatic aberration each channel is
-    the render at its own CoC scale (max_coc * chromatic[ch]), three renders instead of one."""
-    scales = scene.options.chromatic
-    img = render_planes(planes, float(t.focus), float(t.max_coc) * scales[1], scene.aperture, planar=True)
+def _render_target(planes, t: Target, scene: Scene, aperture=None):
+    """Target t, planar (3, H, W) linear, through `aperture` (default the scene's; a half of it
+    for a dual-pixel view); with longitudinal chromatic aberration each channel is the render
+    at its own CoC scale (max_coc * chromatic[ch]), three renders instead of one."""
+    scales, aperture = scene.options.chromatic, aperture or scene.aperture
+    img = render_planes(planes, float(t.focus), float(t.max_coc) * scales[1], aperture, planar=True)
     for ch in (0, 2):
         if scales[ch] != scales[1]:
-            img[ch] = render_planes(planes, float(t.focus), float(t.max_coc) * scales[ch], scene.aperture,
-                                    planar=True)[ch]
+            img[ch] = render_planes(planes, float(t.focus), float(t.max_coc) * scales[ch], aperture, planar=True)[ch]
     return img
 
 

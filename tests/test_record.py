@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from dofsynth.assets import build_library
-from dofsynth.color import linear_to_srgb8
+from dofsynth.color import linear_to_srgb8, srgb_to_linear
 from dofsynth.highlight import boost, unboost
 from dofsynth.image import to_uint8
 from dofsynth.compose import SceneLayers, scene_layers
 from dofsynth.recipe import load_recipe
-from dofsynth.io import encode_png
+from dofsynth.io import decode_image, encode_png
 from dofsynth.render.planes import Plane
 from dofsynth.record import (RENDERER_ID, SCHEMA_VERSION, SampleDecodeError, decode_sample, encode_cover, encode_depth,
                              encode_png8,
@@ -276,3 +276,48 @@ def test_longitudinal_chromatic_aberration_scales_each_channels_coc():
     assert not np.array_equal(mixed[:, :, 0], same[:, :, 0])      # red really is defocused differently
     plain = sample_scene(recipe_from_text(base, "smoke.toml", root), library, "train", 1)
     assert "chromatic" not in plain.to_dict()["options"]
+
+
+def test_dual_pixel_views_are_mirror_halves_that_sum_to_the_target():
+    """A mirror-symmetric scene through a disk: the left view is the right one mirrored, and
+    the area-weighted sum of the two views is the target (in linear light, exactly)."""
+    from dofsynth.optics import Disk
+    from dofsynth.render.subaperture import halves
+
+    h, w = 40, 48
+    yy, xx = np.mgrid[0:h, 0:w]
+    bg = np.stack([np.cos(yy / 3.0) * 0.4 + 0.5, np.abs(xx - (w - 1) / 2) / w, np.full((h, w), 0.3)], axis=2)
+    disc = np.clip(9 - np.hypot(yy - 20, xx - (w - 1) / 2), 0, 1).astype(np.float32)
+    planes = [Plane(bg.astype(np.float32), np.ones((h, w), np.float32), 0.1),
+              Plane(np.zeros((h, w, 3), np.float32) + [0.9, 0.2, 0.1], disc, 0.8)]
+    (left, wl), (right, wr) = halves(Disk())
+    assert wl == pytest.approx(0.5) and wr == pytest.approx(0.5)
+    lv, rv = (render_planes(planes, 0.1, 10.0, a) for a in (left, right))
+    assert np.allclose(lv, rv[:, ::-1], atol=1e-5)
+    assert not np.allclose(lv, rv, atol=1e-3)        # the views differ: the disc's blur shifts
+    full = render_planes(planes, 0.1, 10.0, Disk())
+    both = wl * lv + wr * rv
+    assert np.abs(both - full)[disc == 0].max() < 0.02     # the layered target, away from the occluder
+
+
+def test_dual_pixel_members_in_a_sample():
+    import re
+
+    from dofsynth.assets import build_library
+    from dofsynth.recipe import recipe_from_text
+    from dofsynth.scene import sample_scene
+
+    root = Path(__file__).resolve().parents[1] / "recipes"
+    text = re.sub(r"(?m)^\[render\]$", '[render]\nmembers = ["dual_pixel"]', (root / "smoke.toml").read_text())
+    recipe = recipe_from_text(text, "smoke-dp.toml", root)
+    library = build_library(recipe)
+    m = render_sample(sample_scene(recipe, library, "train", 0), library)
+    d = decode_sample(m)
+    for n in range(len(d["dof"])):
+        lv = decode_image(m[f"dp.{n}.left.png"])
+        rv = decode_image(m[f"dp.{n}.right.png"])
+        assert lv.shape == d["dof"][n].shape
+        # the 8-bit views average to the target within the rounding (and the highlight inverse)
+        mean = (srgb_to_linear(lv) + srgb_to_linear(rv)) / 2      # a disk: the halves weigh 1/2 each
+        assert np.abs(mean - srgb_to_linear(d["dof"][n])).mean() < 2e-3
+        assert not np.array_equal(lv, rv)

@@ -74,6 +74,16 @@ def cells(aperture: Aperture, n: int) -> tuple[tuple[Cell, float], ...]:
     return tuple((c, w / s) for c, w in out)
 
 
+@lru_cache(maxsize=64)
+def halves(aperture: Aperture) -> tuple[tuple[Cell, float], tuple[Cell, float]]:
+    """The left (x < 0) and right (x > 0) halves of the aperture with their area shares: the
+    two views of a dual-pixel sensor, whose weighted sum is the whole aperture's image."""
+    total = float(coverage(aperture, _AREA_RADIUS).sum())
+    left, right = Cell(aperture, -1.0, 0.0, -1.0, 1.0), Cell(aperture, 0.0, 1.0, -1.0, 1.0)
+    wl = float(coverage(left, _AREA_RADIUS).sum()) / total
+    return (left, wl), (right, 1.0 - wl)
+
+
 def render_subaperture(planes, focus: float, max_coc: float, aperture: Aperture, options) -> np.ndarray:
     """Sub-aperture render of validated planes (back to front): linear RGB (3, H, W) float32.
     `options`: a dofsynth.render.RenderOptions (its `cells`: n for an n x n grid; the layered
