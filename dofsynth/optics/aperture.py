@@ -160,6 +160,18 @@ class Polygon(Aperture):
         return inside
 
 
+def cat_eye_offset(shape: tuple[int, int], strength: float, gy=None, gx=None):
+    """(oy, ox): the centre of the vignetting circle, in units of the aperture radius, at pixel
+    rows gy / columns gx (default: every pixel) of a frame of `shape`: `strength` times the
+    position relative to the frame centre over the half-diagonal (so |offset| = strength at the
+    corners, 0 at the centre)."""
+    h, w = shape
+    if gy is None:
+        gy, gx = np.mgrid[0:h, 0:w].astype(np.float64)
+    half = 0.5 * math.hypot(h - 1, w - 1) or 1.0
+    return strength * (gy - (h - 1) / 2) / half, strength * (gx - (w - 1) / 2) / half
+
+
 def _kinds() -> str:
     return ", ".join(repr(k) for k in APERTURES)
 

@@ -41,6 +41,7 @@ class RenderOptions:
     level_ratio: float = LEVEL_RATIO
     samples: int | None = None
     cells: int = 1
+    cat_eye: float = 0.0
 
     def __post_init__(self):
         if not (math.isfinite(self.level_step) and self.level_step > 0):
@@ -53,6 +54,8 @@ class RenderOptions:
         c = self.cells
         if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 1 <= c <= 16:
             raise ValueError(f"cells must be an integer in 1..16 (an n x n grid), got {c}")
+        if not (math.isfinite(self.cat_eye) and 0.0 <= self.cat_eye <= 1.0):
+            raise ValueError(f"cat_eye must be a strength in [0, 1], got {self.cat_eye}")
 
 
 @dataclass(frozen=True)
@@ -70,13 +73,15 @@ METHODS: dict[str, Method] = {
 
 def render_planes(planes, focus: float, max_coc: float, aperture: Aperture = Disk(), *, method: str = "layered",
                   level_step: float = 0.5, level_ratio: float = LEVEL_RATIO, samples: int | None = None,
-                  cells: int = 1, planar: bool = False) -> np.ndarray:
+                  cells: int = 1, cat_eye: float = 0.0, planar: bool = False) -> np.ndarray:
     """Render a layered scene with shallow depth of field; linear RGB (H, W, 3) float32.
 
     planes: Plane, back to front (disparity in [0, 1], 1 = nearest). focus: the in-focus
     disparity. max_coc: CoC radius in pixels at |disparity - focus| = 1. aperture: a kind of
-    dofsynth.optics.aperture. method: a key of METHODS; level_step, level_ratio, samples and
-    cells (subaperture: an n x n grid) are its RenderOptions. The result is the premultiplied composite over black (opaque if the
+    dofsynth.optics.aperture. method: a key of METHODS; level_step, level_ratio, samples,
+    cells (subaperture: an n x n grid) and cat_eye (subaperture, exact: optical vignetting,
+    the aperture clipped by a unit circle offset by cat_eye x the position over the frame's
+    half-diagonal) are its RenderOptions. The result is the premultiplied composite over black (opaque if the
     backmost plane is). planar=True returns the same values as (3, H, W) (the renderer's own
     layout: no interleaving copy, which at 4096 px is a fresh 192 MiB frame and ~0.17 s).
     """
@@ -87,7 +92,10 @@ def render_planes(planes, focus: float, max_coc: float, aperture: Aperture = Dis
     validate_planes(planes, focus, max_coc, use_boxes=m.uses_boxes)
     if not isinstance(aperture, Aperture):
         raise ValueError(f"aperture must be an aperture kind (Disk(), Polygon(...)), got {aperture!r}")
-    options = RenderOptions(level_step=level_step, level_ratio=level_ratio, samples=samples, cells=cells)
+    options = RenderOptions(level_step=level_step, level_ratio=level_ratio, samples=samples, cells=cells,
+                            cat_eye=float(cat_eye))
+    if options.cat_eye and method == "layered":
+        raise ValueError("cat_eye needs method='subaperture' (with cells > 1) or 'exact'")
     acc = m.render(planes, focus, max_coc, aperture, options)
     if planar:
         return acc

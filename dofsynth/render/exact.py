@@ -14,7 +14,7 @@ import math
 import cv2
 import numpy as np
 
-from dofsynth.optics.aperture import Aperture
+from dofsynth.optics.aperture import Aperture, cat_eye_offset
 from dofsynth.optics.coc import coc_radius
 from dofsynth.optics.kernel import coverage
 
@@ -74,10 +74,21 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, optio
         prepared.append((np.ascontiguousarray(pm), c))
     px, py, wt = aperture_samples(aperture, cmax, options.samples)
     acc = np.zeros((H, W, 4), np.float64)
+    vignette = getattr(options, "cat_eye", 0.0)
+    if vignette:  # each aperture point counts only where it lies inside the offset circle
+        oy, ox = cat_eye_offset((H, W), vignette)
+        norm = np.zeros((H, W, 1), np.float64)
     for x, y, w in zip(px, py, wt):
         comp = np.zeros((H, W, 4), np.float32)
         for pm, c in prepared:
             warped = _warp(pm, c, x, y, gx, gy)
             comp = warped + (1.0 - warped[:, :, 3:4]) * comp
-        acc += w * comp
+        if vignette:
+            m = (((y - oy) ** 2 + (x - ox) ** 2) <= 1.0)[:, :, None] * w
+            acc += m * comp
+            norm += m
+        else:
+            acc += w * comp
+    if vignette:
+        acc /= np.maximum(norm, 1e-12)
     return np.ascontiguousarray(acc[:, :, :3].transpose(2, 0, 1), dtype=np.float32)

@@ -17,9 +17,10 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
+import cv2
 import numpy as np
 
-from dofsynth.optics.aperture import Aperture
+from dofsynth.optics.aperture import Aperture, cat_eye_offset
 from dofsynth.optics.kernel import coverage
 from dofsynth.render.layered import render_layered
 
@@ -84,18 +85,48 @@ def halves(aperture: Aperture) -> tuple[tuple[Cell, float], tuple[Cell, float]]:
     return (left, wl), (right, 1.0 - wl)
 
 
+CAT_EYE_GRID = 9      # frame positions per side where the cells' weights are measured, then interpolated
+CAT_EYE_POINTS = 24   # sample points per side of a cell for its share inside the vignetting circle
+
+
+def cat_eye_weights(cell: Cell, shape: tuple[int, int], strength: float) -> np.ndarray:
+    """(H, W) float32: the share of the aperture's area that lies in `cell` and inside the
+    vignetting circle (radius 1 about cat_eye_offset), measured by points on a grid of
+    CAT_EYE_GRID x CAT_EYE_GRID frame positions and interpolated bilinearly (smooth)."""
+    h, w = shape
+    t = (np.arange(CAT_EYE_POINTS) + 0.5) / CAT_EYE_POINTS
+    px = cell.x0 + (cell.x1 - cell.x0) * t
+    py = cell.y0 + (cell.y1 - cell.y0) * t
+    py, px = np.meshgrid(py, px, indexing="ij")
+    inside = cell.base.contains(px, py)
+    unit = (cell.x1 - cell.x0) * (cell.y1 - cell.y0) / CAT_EYE_POINTS**2 / cell.base.area(1.0)
+    gy = np.linspace(0, h - 1, CAT_EYE_GRID)
+    gx = np.linspace(0, w - 1, CAT_EYE_GRID)
+    oy, ox = cat_eye_offset(shape, strength, *np.meshgrid(gy, gx, indexing="ij"))
+    d2 = (py[None, None] - oy[..., None, None]) ** 2 + (px[None, None] - ox[..., None, None]) ** 2
+    coarse = ((d2 <= 1.0) & inside).sum(axis=(2, 3)) * unit
+    return cv2.resize(coarse.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+
+
 def render_subaperture(planes, focus: float, max_coc: float, aperture: Aperture, options) -> np.ndarray:
     """Sub-aperture render of validated planes (back to front): linear RGB (3, H, W) float32.
-    `options`: a dofsynth.render.RenderOptions (its `cells`: n for an n x n grid; the layered
-    method's level_step and level_ratio per cell)."""
+    `options`: a dofsynth.render.RenderOptions (its `cells`: n for an n x n grid; `cat_eye`:
+    the vignetting strength; the layered method's level_step and level_ratio per cell).
+
+    With cat_eye > 0 each cell's weight varies over the frame (cat_eye_weights) and the sum is
+    normalized by the weights, so what is in focus keeps its brightness."""
     n = options.cells
-    if n == 1:
+    if n == 1 and not options.cat_eye:
         return render_layered(planes, focus, max_coc, aperture, options)
-    acc = None
+    acc = norm = None
     for cell, w in cells(aperture, n):
         img = render_layered(planes, focus, max_coc, cell, options)
+        wk = np.float32(w) if not options.cat_eye else cat_eye_weights(cell, img.shape[1:], options.cat_eye)
         if acc is None:
-            acc = img * np.float32(w)
+            acc, norm = img * wk, wk
         else:
-            acc += np.float32(w) * img
+            acc += wk * img
+            norm = norm + wk
+    if options.cat_eye:
+        acc /= np.maximum(norm, 1e-12)
     return acc
