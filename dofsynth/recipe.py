@@ -119,6 +119,9 @@ class RenderRules:
     linear_light: bool = key(True)
     members: tuple[str, ...] = key(())   # optional members per sample: any of OPTIONAL_MEMBERS
     chromatic: tuple[float, ...] = key((1.0, 1.0, 1.0), lo=0.25, hi=4.0)  # CoC scale of R, G, B (longitudinal CA)
+    method: str = key("layered", choices=("layered", "subaperture", "exact"))  # dofsynth.render.METHODS
+    cells: int = key(3, lo=1, hi=16)     # subaperture: an n x n grid of aperture cells
+    cat_eye: float = key(0.0, lo=0.0, hi=1.0)  # optical vignetting strength (subaperture, exact)
     aperture: ApertureRules = table(ApertureRules)
     highlight: HighlightRules = table(HighlightRules)
 
@@ -156,6 +159,9 @@ def _check(r: Recipe, file: str) -> None:
     """The rules between keys: at least one sample, a ramp that falls, planes in front."""
     if r.samples.train + r.samples.test == 0:
         raise ConfigError(f"{file}: samples: expected at least one sample in train or test, got 0")
+    if r.render.cat_eye and r.render.method == "layered":
+        raise error(file, "render.cat_eye", "0 with method layered (cat's eyes need subaperture or exact)",
+                    r.render.cat_eye)
     if len(r.render.chromatic) != 3:
         raise error(file, "render.chromatic", "three CoC scales (R, G, B)", list(r.render.chromatic))
     if max(r.render.chromatic) * r.focus.max_coc[1] > MAX_COC_PER_SIDE * r.size:

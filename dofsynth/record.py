@@ -42,7 +42,8 @@ from dofsynth.io import decode_exr, decode_image, encode_exr, encode_png_bgr, sw
 
 SCHEMA_VERSION = 3  # 2: assets' colour; objects' anchored, visible and rejected;
 #                    3: depth.exr channel "disparity" (was "Z") with attributes; sRGB chunks
-RENDERER_ID = "layered-v3"  # v2: highlights blurred as boosted light and mapped back (dofsynth.highlight);
+RENDERERS = {"layered": "layered-v3", "subaperture": "subaperture-v1", "exact": "exact-v1"}
+RENDERER_ID = RENDERERS["layered"]  # v2: highlights blurred as boosted light and mapped back (dofsynth.highlight);
 #                             v3: cutouts edge-replicated past the frame edges they reach
 # zlib settings of the PNG members, chosen by measurement at 1024 px (docs/rendering.md):
 # - images (aif, dof): level 1, one fixed Paeth row filter, Huffman-only coding. libpng no longer
@@ -196,7 +197,7 @@ def sample_record(scene) -> dict:
     """The JSON record of a scene: `scene.to_dict()` plus schema/renderer/version stamps."""
     rec = dict(scene.to_dict())
     rec["schema_version"] = SCHEMA_VERSION
-    rec["renderer"] = RENDERER_ID
+    rec["renderer"] = RENDERERS[scene.options.method]
     rec["dofsynth_version"] = __version__
     return _plain(rec)
 

@@ -89,7 +89,7 @@ def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
                 unboost(img, **hl, out=img, axis=0)
             members[f"dof.{n}.png"] = encode_srgb_png_planar(img)
         else:
-            img = render_planes(planes, float(t.focus), float(t.max_coc), scene.aperture)
+            img = render_planes(planes, float(t.focus), float(t.max_coc), scene.aperture, **scene.options.render_kw())
             members[f"dof.{n}.png"] = encode_png8(np.clip(img, 0.0, 1.0))
         del img
     members["json"] = encode_record(sample_record(scene))
@@ -101,10 +101,12 @@ def _render_target(planes, t: Target, scene: Scene, aperture=None):
     for a dual-pixel view); with longitudinal chromatic aberration each channel is the render
     at its own CoC scale (max_coc * chromatic[ch]), three renders instead of one."""
     scales, aperture = scene.options.chromatic, aperture or scene.aperture
-    img = render_planes(planes, float(t.focus), float(t.max_coc) * scales[1], aperture, planar=True)
+    kw = scene.options.render_kw()
+    img = render_planes(planes, float(t.focus), float(t.max_coc) * scales[1], aperture, planar=True, **kw)
     for ch in (0, 2):
         if scales[ch] != scales[1]:
-            img[ch] = render_planes(planes, float(t.focus), float(t.max_coc) * scales[ch], aperture, planar=True)[ch]
+            img[ch] = render_planes(planes, float(t.focus), float(t.max_coc) * scales[ch], aperture, planar=True,
+                                    **kw)[ch]
     return img
 
 

@@ -80,6 +80,30 @@ class Options:
     linear_light: bool
     members: tuple[str, ...] = ()   # optional members written: "coc", "layers" (recipe render.members)
     chromatic: tuple[float, float, float] = (1.0, 1.0, 1.0)  # CoC scale per colour channel (R, G, B)
+    method: str = "layered"         # dofsynth.render.METHODS: how the targets are rendered
+    cells: int = 1                  # subaperture: n x n aperture cells
+    cat_eye: float = 0.0            # subaperture, exact: optical vignetting strength
+
+    def render_kw(self) -> dict:
+        """The render_planes keywords of these options."""
+        kw = {"method": self.method}
+        if self.method == "subaperture":
+            kw["cells"] = self.cells
+        if self.cat_eye:
+            kw["cat_eye"] = self.cat_eye
+        return kw
+
+
+def _method_dict(o: Options) -> dict:
+    """The record's method keys: absent for the layered method (older records stay as they were)."""
+    if o.method == "layered":
+        return {}
+    d = {"method": o.method}
+    if o.method == "subaperture":
+        d["cells"] = o.cells
+    if o.cat_eye:
+        d["cat_eye"] = o.cat_eye
+    return d
 
 
 @dataclass(frozen=True)
@@ -110,7 +134,8 @@ class Scene:
             "aperture": self.aperture.to_dict(),
             "options": {"highlight": asdict(self.options.highlight) if self.options.highlight else None,
                         "linear_light": self.options.linear_light, "members": list(self.options.members),
-                        **({"chromatic": list(self.options.chromatic)} if self.options.chromatic != (1.0, 1.0, 1.0) else {})},
+                        **({"chromatic": list(self.options.chromatic)} if self.options.chromatic != (1.0, 1.0, 1.0) else {}),
+                        **_method_dict(self.options)},
             "excluded": list(self.excluded),
         }
 
@@ -129,7 +154,9 @@ class Scene:
             options=Options(highlight=Highlight(**hl) if hl else None,
                             linear_light=bool(d["options"].get("linear_light", True)),
                             members=tuple(d["options"].get("members", ())),
-                            chromatic=tuple(float(v) for v in d["options"].get("chromatic", (1.0, 1.0, 1.0)))),
+                            chromatic=tuple(float(v) for v in d["options"].get("chromatic", (1.0, 1.0, 1.0))),
+                            method=d["options"].get("method", "layered"), cells=int(d["options"].get("cells", 1)),
+                            cat_eye=float(d["options"].get("cat_eye", 0.0))),
             excluded=tuple(d.get("excluded", ())),
         )
 
@@ -281,7 +308,9 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int, 
     linear = recipe.render.linear_light  # highlights are light: the naive (sRGB) baseline has none
     options = Options(highlight=Highlight(hr.threshold, hr.gain, hr.power) if hr.enabled and linear else None,
                       linear_light=linear, members=tuple(recipe.render.members),
-                      chromatic=tuple(float(v) for v in recipe.render.chromatic))
+                      chromatic=tuple(float(v) for v in recipe.render.chromatic), method=recipe.render.method,
+                      cells=recipe.render.cells if recipe.render.method == "subaperture" else 1,
+                      cat_eye=recipe.render.cat_eye)
 
     return Scene(
         key=sample_key(split, index), split=split, index=int(index), seed=seed, size=(H, W),

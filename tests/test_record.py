@@ -321,3 +321,32 @@ def test_dual_pixel_members_in_a_sample():
         mean = (srgb_to_linear(lv) + srgb_to_linear(rv)) / 2      # a disk: the halves weigh 1/2 each
         assert np.abs(mean - srgb_to_linear(d["dof"][n])).mean() < 2e-3
         assert not np.array_equal(lv, rv)
+
+
+def test_a_recipe_can_choose_the_subaperture_method_and_the_record_says_so(tmp_path):
+    import re
+
+    from dofsynth.assets import build_library
+    from dofsynth.cli import main
+    from dofsynth.recipe import recipe_from_text
+    from dofsynth.scene import sample_scene
+
+    root = Path(__file__).resolve().parents[1] / "recipes"
+    text = re.sub(r"(?m)^\[render\]$", '[render]\nmethod = "subaperture"\ncells = 2\ncat_eye = 0.3', (root / "smoke.toml").read_text())
+    recipe = recipe_from_text(text, "smoke-sub.toml", root)
+    library = build_library(recipe)
+    scene = sample_scene(recipe, library, "train", 0)
+    d = decode_sample(render_sample(scene, library))
+    assert d["record"]["renderer"] == "subaperture-v1"
+    assert {k: d["record"]["options"][k] for k in ("method", "cells", "cat_eye")} == {"method": "subaperture", "cells": 2, "cat_eye": 0.3}
+    layers = scene_layers(scene, library)
+    hl = d["record"]["options"]["highlight"]
+    planes = [Plane(boost(p.rgb, **hl), p.alpha, p.disparity, p.box) for p in layers.planes]
+    t = scene.targets[0]
+    want = render_planes(planes, t.focus, t.max_coc, aperture_from_dict(d["record"]["aperture"]), method="subaperture",
+                         cells=2, cat_eye=0.3)
+    assert np.array_equal(to_uint8(d["dof"][0]), linear_to_srgb8(unboost(want, **hl)))
+    path = tmp_path / "sub.toml"
+    path.write_text(text.replace('"builtin"', '"builtin"'))
+    out = tmp_path / "set"
+    assert main(["generate", str(path), "--out", str(out), "-q"]) == 0 and main(["verify", str(out), "--deep", "-q"]) == 0
