@@ -294,7 +294,7 @@ def test_tiny_sets_still_fill_both_splits():
 # ------------------------------------------------------------------------------ manifests
 def test_scan_command_writes_a_manifest(tmp_path, tiny_bg_dir, capsys):
     out = tmp_path / "pins" / "bg.json"
-    assert cli_main(["assets", "scan", str(tiny_bg_dir), "--manifest", str(out), "--licence", "CC0", "-q"]) == 0
+    assert cli_main(["assets", "scan", str(tiny_bg_dir), "--manifest", str(out), "--licence", "CC0"]) == 0
     doc = json.loads(out.read_text())
     assert doc["schema_version"] == 1 and doc["root"] == "../bg"
     files = {f["path"]: f for f in doc["files"]}

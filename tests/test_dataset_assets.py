@@ -146,7 +146,7 @@ def test_assets_scan_decodes_what_it_pins(tmp_path, tiny_bg_dir, capsys):
     good = (tiny_bg_dir / "a.png").read_bytes()
     (tiny_bg_dir / "truncated.png").write_bytes(good[: int(len(good) * 0.7)])
     out = tmp_path / "pins.json"
-    assert cli_main(["assets", "scan", str(tiny_bg_dir), "--manifest", str(out), "-q"]) == 0
+    assert cli_main(["assets", "scan", str(tiny_bg_dir), "--manifest", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert "truncated.png" not in {f["path"] for f in doc["files"]}
     assert [s["path"] for s in doc["skipped"]] == ["truncated.png"]
