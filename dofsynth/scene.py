@@ -96,14 +96,7 @@ class Options:
 
 def _method_dict(o: Options) -> dict:
     """The record's method keys: absent for the layered method (older records stay as they were)."""
-    if o.method == "layered":
-        return {}
-    d = {"method": o.method}
-    if o.method == "subaperture":
-        d["cells"] = o.cells
-    if o.cat_eye:
-        d["cat_eye"] = o.cat_eye
-    return d
+    return {} if o.method == "layered" else o.render_kw()
 
 
 @dataclass(frozen=True)
