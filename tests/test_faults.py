@@ -323,3 +323,20 @@ def test_a_training_run_killed_before_its_first_log_row_resumes(tmp_path):
     assert rc == 0, err
     rows = (run / "log.csv").read_text().splitlines()
     assert rows[0].startswith("step,") and rows[-1].startswith("6,"), rows
+
+
+def test_ctrl_c_while_workers_start_prints_one_line(recipe_path, tmp_path):
+    """A terminal's Ctrl-C reaches the whole process group: the workers, still starting, must
+    not print a traceback each; the run stops with one line naming --resume."""
+    import os
+
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "dofsynth", "generate", str(recipe_path), "--out", str(out),
+                             "--quiet", "--workers", "2"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    assert _until(lambda: _children(proc.pid), 60, 0.01), "no worker started"
+    os.killpg(proc.pid, signal.SIGINT)
+    rc, err = _ended(proc)
+    line = _one_line(err)
+    assert rc == 130 and "interrupted" in line and "--resume" in line, line
+    assert "Traceback" not in err

@@ -152,3 +152,18 @@ def test_model_hook(tmp_path, monkeypatch, photo):
     rc = main(["render", str(photo), "--depth", str(tmp_path / "d.exr"), "--focus", "0.3", "--model", "runs/r1",
                "--aperture-scale", "1.5", "--out", str(out)])
     assert rc == 2
+
+
+def test_render_subaperture_with_cat_eye_on_the_command_line(tmp_path):
+    from dofsynth.cli import main
+
+    img = np.zeros((48, 64, 3), np.float32) + 0.05
+    img[4:6, 4:6] = 1.0
+    write_png(tmp_path / "p.png", img)
+    write_exr(tmp_path / "d.exr", np.zeros((48, 64), np.float32))
+    args = ["render", str(tmp_path / "p.png"), "--depth", str(tmp_path / "d.exr"), "--focus", "1", "--max-coc", "6"]
+    assert main(args + ["--method", "subaperture", "--cells", "4", "--cat-eye", "0.6", "--out", str(tmp_path / "a.exr")]) == 0
+    assert main(args + ["--method", "subaperture", "--cells", "4", "--out", str(tmp_path / "b.exr")]) == 0
+    a, b = read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "b.exr")
+    assert a.shape == (48, 64, 3) and not np.allclose(a, b, atol=1e-4)   # the corner disc is clipped
+    assert main(args + ["--cat-eye", "0.6", "--out", str(tmp_path / "c.exr")]) == 2   # layered: refused by name

@@ -66,6 +66,9 @@ def register(subparsers) -> None:
                         "times the cost) or exact (aperture sampling; slow, for small images)")
     p.add_argument("--cells", type=int_at_least(1), default=3, metavar="N",
                    help="with --method subaperture: an N x N grid of aperture cells, 1..16 (default 3)")
+    p.add_argument("--cat-eye", type=_nonneg, default=0.0, metavar="S",
+                   help="optical vignetting strength in [0, 1]: bokeh become cat's eyes toward the corners "
+                        "(with --method subaperture or exact; default 0)")
     p.add_argument("--model", metavar="RUN", default=None,
                    help="render with a trained network from training run folder RUN instead")
     p.add_argument("--aperture-scale", type=_nonneg, default=1.0, metavar="S",
@@ -144,7 +147,8 @@ def run(args) -> int:
         plane = Plane(rgb, np.ones(disparity.shape, np.float32), disparity)
         with scipy.fft.set_workers(os.cpu_count() or 1):
             cells = args.cells if args.method == "subaperture" else 1
-            result = render_planes([plane], focus, args.max_coc, aperture, method=args.method, cells=cells)
+            result = render_planes([plane], focus, args.max_coc, aperture, method=args.method, cells=cells,
+                                   cat_eye=args.cat_eye)
         if args.highlight:
             result = unboost(result, out=result)
     _write(out, np.asarray(result, dtype=np.float32))
