@@ -330,8 +330,11 @@ def test_ctrl_c_while_workers_start_prints_one_line(recipe_path, tmp_path):
     not print a traceback each; the run stops with one line naming --resume."""
     import os
 
+    long = tmp_path / "long.toml"   # enough samples that the run cannot end before the signal
+    long.write_text(recipe_path.read_text().replace("samples = { train = 6, test = 3 }",
+                                                    "samples = { train = 60, test = 3 }"))
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "dofsynth", "generate", str(recipe_path), "--out", str(out),
+    proc = subprocess.Popen([sys.executable, "-m", "dofsynth", "generate", str(long), "--out", str(out),
                              "--quiet", "--workers", "2"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True)
     assert _until(lambda: _children(proc.pid), 60, 0.01), "no worker started"
