@@ -336,7 +336,9 @@ def test_ctrl_c_while_workers_start_prints_one_line(recipe_path, tmp_path):
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "dofsynth", "generate", str(long), "--out", str(out),
                              "--quiet", "--workers", "2"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+                            text=True, start_new_session=True,
+                            # a test run started in the background inherits SIGINT ignored; a terminal's does not
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert _until(lambda: _children(proc.pid), 60, 0.01), "no worker started"
     os.killpg(proc.pid, signal.SIGINT)
     rc, err = _ended(proc)
