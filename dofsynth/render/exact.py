@@ -74,7 +74,7 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, optio
         prepared.append((np.ascontiguousarray(pm), c))
     px, py, wt = aperture_samples(aperture, cmax, options.samples)
     acc = np.zeros((H, W, 4), np.float64)
-    vignette = getattr(options, "cat_eye", 0.0)
+    vignette = options.cat_eye
     if vignette:  # each aperture point counts only where it lies inside the offset circle
         oy, ox = cat_eye_offset((H, W), vignette)
         norm = np.zeros((H, W, 1), np.float64)

@@ -171,7 +171,7 @@ def _decode_crop(sample: dict, key: str, cfg: Config, rng, crop, target, augment
     depth = decode_depth(sample["depth.exr"], f"{key}.depth.exr")
     if not np.isfinite(depth).all():
         raise ValueError(f"depth.exr holds {int((~np.isfinite(depth)).sum())} NaN or inf values")
-    cover = unit_float(decode_image(sample["cover.png"], f"{key}.cover.png", raw=True), f"{key}.cover.png")
+    cover = decode_image(sample["cover.png"], f"{key}.cover.png")
     corrupted, params = corrupt_disparity(depth, layers_from_record(record, cover), augment, rng)
 
     s = 2 ** cfg.data.levels
