@@ -1,6 +1,7 @@
 """Contact sheets and the HTML page, checked on their pixels against a real smoke data set."""
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -143,26 +144,37 @@ def test_default_path_and_cli(smoke_set, tmp_path, capsys):
     assert main(["sheet", str(tmp_path / "nowhere")]) == 2
 
 
-def test_html_page_links_full_size_images_and_sweeps(smoke_set, tmp_path):
-    page = html.write_html(smoke_set, tmp_path / "html", split="train", n=3, seed=2, sweep=1, sweep_steps=4)
-    text = page.read_text()
+def page_data(page) -> dict:
+    """The samples a QA page embeds (its JSON script)."""
+    text = page.read_text(encoding="utf-8")
+    m = re.search(r'<script type="application/json" id="dofsynth-data">(.*?)</script>', text, re.S)
+    return json.loads(m.group(1))
+
+
+def test_html_page_holds_thumbnails_full_size_images_and_sweeps(smoke_set, tmp_path):
+    page = html.write_html(smoke_set, tmp_path / "html", split="train", n=3, seed=2, sweep=1, sweep_steps=4, thumb=48)
+    data = page_data(page)
     keys = sheets.choose_keys(ds.load(smoke_set), "train", 3, 2)
-    links = re.findall(r'href="(img/[^"]+)"', text)
-    assert links and all((page.parent / l).is_file() for l in links)
-    for key in keys:
+    assert [s["key"] for s in data["samples"]] == keys and data["total"] == {"train": 6}
+    for s in data["samples"]:
+        key, im = s["key"], s["images"]
         members = ds.read_members_many(smoke_set, "train", [key])[key]
-        # the full-size images are the shard's own bytes
-        assert (page.parent / "img" / f"{key}.aif.png").read_bytes() == members["aif.png"]
-        assert (page.parent / "img" / f"{key}.dof.1.png").read_bytes() == members["dof.1.png"]
-        assert f'href="img/{key}.aif.png"' in text and f'href="img/{key}.dof.0.png"' in text
-        disp = read_image(page.parent / "img" / f"{key}.disparity.png")
-        assert disp.shape == (64, 64, 3)
-    sweep = sorted((page.parent / "img").glob("*.sweep.*.png"))
-    assert [p.name for p in sweep] == [f"{keys[0]}.sweep.{i}.png" for i in range(4)]
-    frames = [read_image(p) for p in sweep]
+        # the full-size images are the shard's own bytes; the thumbnails are JPEGs `thumb` px high
+        assert (page.parent / im["aif"]["src"]).read_bytes() == members["aif.png"]
+        assert (page.parent / im["targets"][1]["src"]).read_bytes() == members["dof.1.png"]
+        for v in [im["aif"], im["disparity"], im["coverage"], *im["targets"]]:
+            t = read_image(page.parent / v["thumb"])
+            assert v["thumb"].endswith(".t.jpg") and t.shape[0] == 48
+        assert read_image(page.parent / im["disparity"]["src"]).shape == (64, 64, 3)
+        assert json.loads((page.parent / "img" / f"{key}.json").read_bytes()) == s["record"]
+        assert s["focus"] == [t["focus"] for t in s["record"]["targets"]] and s["mode"] in html.background_mode(s["record"])
+    sweep = data["samples"][0]["images"]["sweep"]
+    assert [f["focus"] for f in sweep] == pytest.approx([0, 1 / 3, 2 / 3, 1]) and "sweep" not in data["samples"][1]["images"]
+    frames = [read_image(page.parent / f["src"]) for f in sweep]
     assert all(f.shape == (64, 64, 3) for f in frames)
     assert max(np.abs(frames[0] - f).max() for f in frames[1:]) > 0.05   # focus changes the image
-    assert "focus 0.00" in text and "focus 1.00" in text
+    every = page_data(html.write_html(smoke_set, tmp_path / "all", split="all", n=2, sweep=0))
+    assert sorted({s["split"] for s in every["samples"]}) == ["test", "train"] and len(every["samples"]) == 4
 
 
 def test_focus_sweep_at_a_target_focus_is_that_target(smoke_set):

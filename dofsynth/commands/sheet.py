@@ -14,19 +14,24 @@ def register(subparsers) -> None:
             "with a 0..1 scale bar, the front (red) and middle (green) coverages over the image, "
             "and every DoF target labelled with its focus and max CoC; each row is captioned with "
             "the sample key and its assets. Samples are picked deterministically with --seed. "
-            "With --html, also write a static page whose images open at full resolution, with a "
-            "focus sweep (scenes re-rendered from their JSON at several focus values)."
+            "With --html, also write a QA page (one folder that works from file://, no server): "
+            "thumbnails that open the full image, a key to flip between the all-in-focus image and "
+            "each target, zoom at 100 % and 400 %, a focus slider over a focus sweep (scenes "
+            "re-rendered from their JSON), filters by split, background, focus, CoC and asset, and "
+            "each sample's record. `dofsynth docs qa` describes it."
         ),
     )
     p.add_argument("out", help="the data set folder (holds manifest.json)")
-    p.add_argument("--split", default="test", help="which split to show (default: test)")
+    p.add_argument("--split", default="test",
+                   help="which split to show, or all: --n samples of every split, a PNG sheet each "
+                        "(OUT/sheet-SPLIT.png) and one page (default: test)")
     p.add_argument("--n", type=int_at_least(1), default=24, help="how many samples, one row each (default: 24)")
     p.add_argument("--seed", type=int, default=0, help="picks the samples; the same seed shows the same ones (default: 0)")
     p.add_argument("--png", dest="path", default=None, metavar="PNG",
                    help="where to write the sheet (default: OUT/sheet-SPLIT.png)")
     p.add_argument("--thumb", type=int, default=192, help="tile height in pixels (default: 192)")
     p.add_argument("--html", default=None, metavar="DIR",
-                   help="also write DIR/index.html with full-size images and focus sweeps")
+                   help="also write the QA page DIR/index.html and its images DIR/img/")
     p.add_argument("--sweep", type=int, default=3, help="how many samples get a focus sweep in --html (default: 3)")
     p.add_argument("--sweep-steps", type=int, default=7, help="focus values per sweep, from 0 to 1 (default: 7)")
     p.set_defaults(func=run)
@@ -38,8 +43,13 @@ def run(args) -> int:
 
     if not 16 <= args.thumb <= 2048:
         raise ValueError(f"--thumb must be between 16 and 2048 pixels, got {args.thumb}")
-    path = write_sheet(args.out, split=args.split, n=args.n, seed=args.seed, path=args.path, thumb=args.thumb)
-    say(path)
+    from dofsynth.qa.dataset import load, manifest_splits
+
+    splits = manifest_splits(load(args.out)) if args.split == "all" else [args.split]
+    if len(splits) > 1 and args.path:
+        raise ValueError("--png names one file: give it with one --split, not all")
+    for split in splits:
+        say(write_sheet(args.out, split=split, n=args.n, seed=args.seed, path=args.path, thumb=args.thumb))
     if args.html:
         page = write_html(args.out, args.html, split=args.split, n=args.n, seed=args.seed,
                           sweep=args.sweep, sweep_steps=args.sweep_steps, thumb=args.thumb)
