@@ -35,13 +35,14 @@ class Spec:
     lo_open: bool = False
     choices: tuple[str, ...] | None = None
     toml: str | bool | None = None   # the TOML key if not the field's name; False: not read
+    empty: bool = False              # a string that may be "" (its default is: "" means "none")
 
 
 def key(default: Any = MISSING, *, lo=None, hi=None, lo_open: bool = False, choices=None, toml=None):
     """A dataclass field read from TOML: its default (none: required), the bounds of a number
     (of both ends of a range, of every element of a tuple), the choices of a string, and the
     TOML name when it differs from the field's (`toml=False`: never read)."""
-    spec = Spec(lo, hi, lo_open, tuple(choices) if choices is not None else None, toml)
+    spec = Spec(lo, hi, lo_open, tuple(choices) if choices is not None else None, toml, default == "")
     return dataclasses.field(default=default, metadata={_META: spec})
 
 
@@ -96,7 +97,7 @@ def _value(tp, v, s: Spec, dotted: str, file: str):
             raise error(file, dotted, want, float(v) if _is_num(v) else v)
         return float(v)
     if tp is str:
-        if not isinstance(v, str) or (s.choices and v not in s.choices) or (not s.choices and not v):
+        if not isinstance(v, str) or (s.choices and v not in s.choices) or (not s.choices and not v and not s.empty):
             want = "one of " + ", ".join(repr(c) for c in s.choices) if s.choices else "a non-empty string"
             raise error(file, dotted, want, v)
         return v

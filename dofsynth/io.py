@@ -165,8 +165,19 @@ DEPTH_CHANNELS = ("disparity", "Z")  # dofsynth's depth member (schema >= 3), th
 def read_depth(path: str | os.PathLike) -> np.ndarray:
     """Read a disparity map as float32 (H, W): an EXR's 'disparity', 'Z' or only channel, or an
     8/16-bit grey image scaled to [0, 1] (grey stored as RGB is taken if its channels are
-    equal). A colour image is refused (ImageReadError): it is not a depth map."""
+    equal), or a 2-D .npy array. A colour image is refused (ImageReadError): it is not a depth map."""
     path = Path(path)
+    if path.suffix.lower() == ".npy":
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such file")
+        try:
+            z = np.load(path, allow_pickle=False)
+        except ValueError as exc:
+            raise ImageReadError(f"{path}: not a readable .npy array ({exc})") from None
+        z = z[..., 0] if z.ndim == 3 and z.shape[2] == 1 else z
+        if z.ndim != 2 or not np.issubdtype(z.dtype, np.number):
+            raise ImageReadError(f"{path}: a depth map must be a 2-D numeric array, got {z.dtype} {z.shape}")
+        return np.ascontiguousarray(z, dtype=np.float32)
     if path.suffix.lower() == ".exr":
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such file")
@@ -182,6 +193,28 @@ def read_depth(path: str | os.PathLike) -> np.ndarray:
     if img.shape[2] >= 3 and not (np.array_equal(grey, img[:, :, 1]) and np.array_equal(grey, img[:, :, 2])):
         raise ImageReadError(f"{path}: a colour image, not a depth map (a grey image, or an EXR of one channel)")
     return np.ascontiguousarray(grey, dtype=np.float32)
+
+
+DEPTH_MAP_KINDS = ("normalized", "disparity", "depth")
+
+
+def normalize_disparity(z: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """(normalized disparity in [0, 1], known mask), both (H, W), of a map of `kind`:
+    "normalized" (already disparity in [0, 1]: kept), "disparity" (any scale or offset, e.g. a
+    monocular network's relative inverse depth) or "depth" (any unit: 1 / z where z > 0); the
+    last two are min-max normalized over their known (finite; depth: > 0) pixels, the paper's
+    normalisation. Unknown pixels become 0 (infinity)."""
+    if kind not in DEPTH_MAP_KINDS:
+        raise ValueError(f"depth kind must be one of {', '.join(DEPTH_MAP_KINDS)}, got {kind!r}")
+    z = np.asarray(z, np.float64)
+    valid = np.isfinite(z) & (z > 0 if kind == "depth" else True)
+    if kind == "normalized":
+        return np.where(valid, z, 0.0).astype(np.float32), valid
+    disp = np.where(valid, 1.0 / np.where(valid, z, 1.0), 0.0) if kind == "depth" else np.where(valid, z, 0.0)
+    if valid.any():
+        lo, hi = disp[valid].min(), disp[valid].max()
+        disp = np.where(valid, (disp - lo) / (hi - lo) if hi > lo else 0.0, 0.0)
+    return disp.astype(np.float32), valid
 
 
 def write_png(path: str | os.PathLike, img: np.ndarray) -> None:

@@ -244,3 +244,31 @@ def shard_keys(path: str | os.PathLike) -> list[str]:
         if not keys or keys[-1] != key:
             keys.append(key)
     return keys
+
+
+def member_index(path: str | os.PathLike) -> dict[str, dict[str, tuple[int, int]]]:
+    """{key: {suffix: (byte offset of the data, size)}} of a shard, from its headers only: for
+    random access to samples (`read_members`). `ShardError` names a bad file."""
+    path = Path(path)
+    index: dict[str, dict[str, tuple[int, int]]] = {}
+    try:
+        with tarfile.open(path, "r:") as tar:
+            for info in tar:
+                if info.isfile():
+                    key, _, member = info.name.rsplit("/", 1)[-1].partition(".")
+                    index.setdefault(key, {})[member] = (info.offset_data, info.size)
+    except (tarfile.TarError, EOFError, OSError) as exc:
+        raise ShardError(f"{path}: unreadable tar ({exc})") from exc
+    return index
+
+
+def read_members(path: str | os.PathLike, members: dict[str, tuple[int, int]]) -> dict[str, bytes]:
+    """{suffix: bytes} of one sample's entry of `member_index(path)`."""
+    out = {}
+    with open(path, "rb") as fh:
+        for suffix, (offset, size) in members.items():
+            fh.seek(offset)
+            out[suffix] = fh.read(size)
+            if len(out[suffix]) != size:
+                raise ShardError(f"{path}: member {suffix} at byte {offset} is truncated")
+    return out

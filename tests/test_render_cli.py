@@ -110,9 +110,9 @@ def test_faults_a_user_makes_end_in_one_line_and_leave_no_file(tmp_path, capsys)
     rc, err = run_err(base + ["--depth", str(tmp_path / "d.exr"), "--max-coc", "100000", "--out",
                               str(tmp_path / "o.png")], capsys)
     assert rc == 2 and "max_coc 100000 px is more than 2 x the image's long side (60 px)" in err, err
-    rc, err = run_err(base + ["--depth", str(tmp_path / "d.exr"), "--max-coc", "4", "--out", str(tmp_path / "folder")],
+    rc, err = run_err(base + ["--depth", str(tmp_path / "d.exr"), "--max-coc", "4", "--out", str(tmp_path / "o.txt")],
                       capsys)
-    assert rc == 2 and "is a folder" in err, err
+    assert rc == 2 and "must be a folder or a file ending in .png or .exr" in err, err
     for depth in ("rgb.exr", "colour.png"):
         rc, err = run_err(base + ["--depth", str(tmp_path / depth), "--max-coc", "4", "--out",
                                   str(tmp_path / "o.png")], capsys)
@@ -120,6 +120,17 @@ def test_faults_a_user_makes_end_in_one_line_and_leave_no_file(tmp_path, capsys)
     assert len(err.strip().splitlines()) == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["colour.png", "d.exr", "folder", "p.png", "rgb.exr"]
     assert not list((tmp_path / "folder").iterdir())
+
+
+def test_out_may_be_a_folder(tmp_path):
+    write_png(tmp_path / "p.png", np.full((20, 30, 3), 0.5, np.float32))
+    write_exr(tmp_path / "d.exr", np.full((20, 30), 0.5, np.float32))
+    (tmp_path / "folder").mkdir()
+    args = ["render", str(tmp_path / "p.png"), "--depth", str(tmp_path / "d.exr"), "--focus", "0.5", "--max-coc", "2"]
+    assert main(args + ["--out", str(tmp_path / "folder")]) == 0
+    assert main(args + ["--out", str(tmp_path / "new") + "/"]) == 0
+    assert read_image(tmp_path / "folder" / "p.dof.png").shape == (20, 30, 3)
+    assert (tmp_path / "new" / "p.dof.png").read_bytes() == (tmp_path / "folder" / "p.dof.png").read_bytes()
 
 
 def test_help(capsys):
@@ -142,16 +153,21 @@ def test_model_hook(tmp_path, monkeypatch, photo):
 
     fake = types.ModuleType("dofsynth.train.infer")
     fake.render_photo = render_photo
+    fake.run_task = lambda run_dir: "render"
     monkeypatch.setitem(sys.modules, "dofsynth.train.infer", fake)
     out = tmp_path / "net.exr"
-    rc = main(["render", str(photo), "--depth", str(tmp_path / "d.exr"), "--focus", "0.3", "--model", "runs/r1",
+    run = tmp_path / "r1"
+    run.mkdir()
+    rc = main(["render", str(photo), "--depth", str(tmp_path / "d.exr"), "--focus", "0.3", "--model", str(run),
                "--aperture-scale", "0.7", "--out", str(out)])
     assert rc == 0
-    assert seen == {"run_dir": "runs/r1", "shape": (h, w, 3), "dshape": (h, w), "focus": 0.3, "ap": 0.7}
+    assert seen == {"run_dir": str(run), "shape": (h, w, 3), "dshape": (h, w), "focus": 0.3, "ap": 0.7}
     np.testing.assert_allclose(read_exr(out, channels=None), 0.25)
-    rc = main(["render", str(photo), "--depth", str(tmp_path / "d.exr"), "--focus", "0.3", "--model", "runs/r1",
+    rc = main(["render", str(photo), "--depth", str(tmp_path / "d.exr"), "--focus", "0.3", "--model", str(run),
                "--aperture-scale", "1.5", "--out", str(out)])
     assert rc == 2
+    assert main(["render", str(photo), "--depth", str(tmp_path / "d.exr"), "--focus", "0.3", "--model", str(run),
+                 "--model", str(run), "--out", str(out)]) == 2   # two DoF runs: one of each task at most
 
 
 def test_render_subaperture_with_cat_eye_on_the_command_line(tmp_path):

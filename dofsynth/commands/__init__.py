@@ -36,3 +36,18 @@ def float_at_least(lo: float):
         return v
 
     return parse
+
+
+def output_file(out: str, image: str, name: str, suffixes: tuple[str, ...]):
+    """The file an image command writes: `out` itself when it names a file with one of
+    `suffixes`, or OUT/<image stem><name> when `out` is a folder (existing, or ending in /),
+    created if needed, like the folder --out of the other commands."""
+    import os
+    from pathlib import Path
+
+    path = Path(out)
+    if path.is_dir() or out.endswith((os.sep, "/")):
+        return path / f"{Path(image).stem}{name}"
+    if path.suffix.lower() not in suffixes:
+        raise ValueError(f"--out {out}: must be a folder or a file ending in {' or '.join(suffixes)}")
+    return path

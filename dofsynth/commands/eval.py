@@ -8,15 +8,17 @@ from dofsynth.progress import say
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "eval",
-        help="score a trained run on the test split against the classical renderer",
+        help="score a trained run on the test split (DoF: against the classical renderer; depth: MAE)",
         description=(
             "Run the trained networks of RUN on every target of the test split of OUT and report "
             "PSNR and SSIM (sRGB, against the rendered targets; PSNR also in the band within max CoC "
             "of a depth edge) next to the classical renderer given the same disparity as a single "
             "image with the options that made the targets, and the all-in-focus input. --depth "
             "chooses that disparity, the same for every method and every run, so runs trained "
-            "differently are scored on the same inputs. The table is printed and written to "
-            "RUN/eval.csv and RUN/eval.json."
+            "differently are scored on the same inputs. A run of the depth network ([train] task = "
+            "\"depth\") is scored by the mean absolute error of its normalized disparity, raw and after "
+            "the DeepLens paper's 5-knot linear-spline fit, beside the best constant map. The table is "
+            "printed and written to RUN/eval.csv and RUN/eval.json."
         ),
     )
     p.add_argument("run_dir", metavar="RUN", help="run folder written by `dofsynth train`")

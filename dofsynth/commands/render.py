@@ -1,5 +1,6 @@
 """`dofsynth render IMAGE --depth DEPTH --focus F --max-coc R --out OUT`: shallow depth of field
-for one photo and its depth map (the photo is one opaque plane of varying disparity)."""
+for one photo and its depth map (the photo is one opaque plane of varying disparity); the depth
+map may come from a trained depth network instead (`--model DEPTH_RUN`)."""
 from __future__ import annotations
 
 import argparse
@@ -8,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dofsynth.commands import float_at_least, int_at_least
+from dofsynth.commands import float_at_least, int_at_least, output_file
 from dofsynth.progress import say
 
 DESCRIPTION = """\
@@ -19,9 +20,17 @@ There is no hidden background behind foreground objects, so at depth edges a blu
 bleeds over a sharp foreground edge and a blurred foreground has nothing behind it to reveal
 (see `dofsynth docs rendering` for the known limits; layered scenes avoid them).
 
-DEPTH is normalized disparity (1 = nearest, 0 = infinity): a float32 EXR (channel Z or its only
-channel) or an 8/16-bit grey PNG/TIFF scaled to [0, 1]. It must have the photo's size.
-OUT is an sRGB 8-bit PNG, or a linear float32 RGB EXR when it ends in .exr; written atomically.
+DEPTH is normalized disparity (1 = nearest, 0 = infinity): a float32 EXR (channel disparity, Z
+or its only channel) or an 8/16-bit grey PNG/TIFF scaled to [0, 1], or a .npy array; it must
+have the photo's size. A depth map from any monocular depth network run elsewhere works too:
+--depth-kind disparity (relative inverse depth, any scale) or depth (any unit) normalises it as
+the DeepLens paper does (inverted for depth, then min-max to [0, 1]).
+
+--model RUN (repeatable) renders with trained networks: a run of the DoF networks replaces the
+classical renderer; a run of the depth network (`[train] task = "depth"`) predicts DEPTH from
+the photo when --depth is not given, so one photo is enough.
+OUT is an sRGB 8-bit PNG, or a linear float32 RGB EXR when it ends in .exr; or a folder (existing,
+or ending in /), which receives IMAGE_STEM.dof.png. Written atomically.
 """
 
 EPILOG = """\
@@ -29,6 +38,8 @@ examples:
   dofsynth render photo.jpg --depth photo_depth.png --focus-at 320,240 --max-coc 12 --out dof.png
   dofsynth render photo.png --depth d.exr --focus 0.8 --max-coc 20 --aperture polygon:6:15 --highlight --out dof.exr
   dofsynth render photo.png --depth d.png --focus 0.8 --model runs/r1 --aperture-scale 1.0 --out net.png
+  dofsynth render photo.jpg --depth midas.png --depth-kind disparity --focus-at 320,240 --max-coc 12 --out dof.png
+  dofsynth render photo.jpg --model runs/depth --model runs/r1 --focus-at 320,240 --out dof.png
 """
 
 
@@ -48,14 +59,20 @@ def register(subparsers) -> None:
         "render", help="shallow depth of field for one photo and its depth map",
         description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("image", metavar="IMAGE", help="the photo (PNG, JPEG, TIFF, WebP: sRGB; EXR: linear)")
-    p.add_argument("--depth", required=True, metavar="DEPTH", help="disparity map in [0, 1], 1 = nearest (EXR or grey PNG)")
+    p.add_argument("--depth", metavar="DEPTH",
+                   help="disparity map in [0, 1], 1 = nearest (EXR, grey PNG or .npy); without it, a depth "
+                        "run among --model predicts it")
+    p.add_argument("--depth-kind", default="normalized", metavar="KIND",
+                   help="what DEPTH holds: normalized (disparity in [0, 1], the default), disparity (any "
+                        "scale) or depth (any unit); the last two are normalised to [0, 1], depth inverted")
     focus = p.add_mutually_exclusive_group(required=True)
     focus.add_argument("--focus", type=_nonneg, metavar="F", help="in-focus disparity in [0, 1]")
     focus.add_argument("--focus-at", type=_focus_at, metavar="X,Y",
                        help="focus on the disparity at pixel column X, row Y (median of a 5x5 window)")
     p.add_argument("--max-coc", type=_nonneg, metavar="R",
                    help="CoC radius in pixels at |disparity - focus| = 1 (required unless --model)")
-    p.add_argument("--out", required=True, metavar="OUT", help="output image: .png (sRGB 8-bit) or .exr (linear)")
+    p.add_argument("--out", required=True, metavar="OUT",
+                   help="output image: .png (sRGB 8-bit) or .exr (linear), or a folder for IMAGE_STEM.dof.png")
     p.add_argument("--aperture", default="disk", metavar="SHAPE",
                    help="disk (default), polygon:N or polygon:N:ROTATION_DEGREES (circumradius = CoC)")
     p.add_argument("--highlight", action="store_true",
@@ -69,8 +86,9 @@ def register(subparsers) -> None:
     p.add_argument("--cat-eye", type=_nonneg, default=0.0, metavar="S",
                    help="optical vignetting strength in [0, 1]: bokeh become cat's eyes toward the corners "
                         "(with --method subaperture or exact; default 0)")
-    p.add_argument("--model", metavar="RUN", default=None,
-                   help="render with a trained network from training run folder RUN instead")
+    p.add_argument("--model", metavar="RUN", action="append", default=[],
+                   help="a training run folder: the DoF networks (render with them instead) or the depth "
+                        "network (predict DEPTH); give it twice for both")
     p.add_argument("--aperture-scale", type=_nonneg, default=1.0, metavar="S",
                    help="with --model: blur strength as a fraction r*/r_max of the largest the network "
                         "learned, in (0, 1] (default 1.0)")
@@ -86,14 +104,18 @@ def focus_at(disparity: np.ndarray, x: int, y: int, window: int = 5) -> float:
     return float(np.median(disparity[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1]))
 
 
-def _read_inputs(args):
-    from dofsynth.io import load_linear_rgba, read_depth
+def _read_inputs(args, depth_run):
+    from dofsynth.io import load_linear_rgba, normalize_disparity, read_depth
 
     for name, path in (("IMAGE", args.image), ("--depth", args.depth)):
-        if not Path(path).is_file():
+        if path is not None and not Path(path).is_file():
             raise FileNotFoundError(f"{name} {path}: no such file")
     rgb, _ = load_linear_rgba(args.image)
-    disparity = read_depth(args.depth)
+    if args.depth is None:
+        from dofsynth.train.infer import predict_depth
+
+        return rgb, predict_depth(depth_run, rgb)
+    disparity, _ = normalize_disparity(read_depth(args.depth), args.depth_kind)
     if disparity.shape != rgb.shape[:2]:
         raise ValueError(f"--depth {args.depth} is {disparity.shape[1]}x{disparity.shape[0]} but IMAGE "
                          f"{args.image} is {rgb.shape[1]}x{rgb.shape[0]}: they must have the same size")
@@ -103,6 +125,23 @@ def _read_inputs(args):
     if not np.all(np.isfinite(rgb)) or rgb.min() < 0:
         raise ValueError(f"IMAGE {args.image}: colour must be finite and >= 0")
     return rgb, disparity
+
+
+def _runs(models: list[str]) -> dict[str, str]:
+    """{task: run folder} of the --model runs: at most one of each task."""
+    if not models:
+        return {}
+    from dofsynth.train.infer import run_task
+
+    runs: dict[str, str] = {}
+    for run_dir in models:
+        if not Path(run_dir).exists():
+            raise FileNotFoundError(f"--model {run_dir}: no such run folder")
+        task = run_task(run_dir)
+        if task in runs:
+            raise ValueError(f"--model {runs[task]} and {run_dir} are both {task} runs; give one of each at most")
+        runs[task] = run_dir
+    return runs
 
 
 def _write(path: Path, rgb: np.ndarray) -> None:
@@ -122,24 +161,27 @@ def run(args) -> int:
     from dofsynth.optics.aperture import parse_aperture
     from dofsynth.render import Plane, render_planes
 
-    out = Path(args.out)
-    if out.is_dir():
-        raise ValueError(f"--out {out}: is a folder; give a file name ending in .png or .exr")
-    if out.suffix.lower() not in (".png", ".exr"):
-        raise ValueError(f"--out {out}: must end in .png or .exr")
+    out = output_file(args.out, args.image, ".dof.png", (".png", ".exr"))
     aperture = parse_aperture(args.aperture)
-    if args.model is not None and not 0.0 < args.aperture_scale <= 1.0:
+    from dofsynth.io import DEPTH_MAP_KINDS
+
+    if args.depth_kind not in DEPTH_MAP_KINDS:
+        raise ValueError(f"--depth-kind must be one of {', '.join(DEPTH_MAP_KINDS)}, got {args.depth_kind!r}")
+    runs = _runs(args.model)
+    if "render" in runs and not 0.0 < args.aperture_scale <= 1.0:
         raise ValueError(f"--aperture-scale must lie in (0, 1], got {args.aperture_scale}")
-    if args.model is None and args.max_coc is None:
-        raise ValueError("--max-coc is required (unless --model renders with a network)")
-    rgb, disparity = _read_inputs(args)
+    if "render" not in runs and args.max_coc is None:
+        raise ValueError("--max-coc is required (unless a --model run of the DoF networks renders)")
+    if args.depth is None and "depth" not in runs:
+        raise ValueError("give --depth DEPTH, or a --model run of the depth network to predict it from the photo")
+    rgb, disparity = _read_inputs(args, runs.get("depth"))
     focus = focus_at(disparity, *args.focus_at) if args.focus_at else args.focus
     if not 0.0 <= focus <= 1.0:
         raise ValueError(f"--focus must be a disparity in [0, 1], got {focus}")
-    if args.model is not None:  # hook: a trained network renders instead (dofsynth.train.infer)
+    if "render" in runs:  # a trained network renders instead (dofsynth.train.infer)
         from dofsynth.train.infer import render_photo
 
-        result = render_photo(run_dir=args.model, image_linear=rgb, disparity=disparity,
+        result = render_photo(run_dir=runs["render"], image_linear=rgb, disparity=disparity,
                               focus=focus, aperture=args.aperture_scale)
     else:
         if args.highlight:
@@ -152,7 +194,9 @@ def run(args) -> int:
         if args.highlight:
             result = unboost(result, out=result)
     _write(out, np.asarray(result, dtype=np.float32))
-    how = (f"network {args.model}, aperture scale {args.aperture_scale}" if args.model is not None
+    how = (f"network {runs['render']}, aperture scale {args.aperture_scale}" if "render" in runs
            else f"max CoC {args.max_coc} px, aperture {args.aperture}")
+    if args.depth is None:
+        how += f", depth predicted by {runs['depth']}"
     say(f"wrote {out} (focus {focus:.4f}, {how})")
     return 0

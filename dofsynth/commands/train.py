@@ -9,7 +9,7 @@ from dofsynth.commands import int_at_least
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "train",
-        help="train the DeepLens lens-blur and upsampling networks on a data set",
+        help="train the DeepLens networks (lens blur + upsampling, or depth prediction) on a data set",
         description=(
             "Train the DeepLens networks on the train split of a dofsynth data set (its last "
             "[data] val_share held out for periodic validation; the test split is left for "
@@ -17,11 +17,13 @@ def register(subparsers) -> None:
             "(model, optimizer, step, config, RNG states) and eval results. Running the same "
             "command again continues from the checkpoint. For several GPUs: torchrun "
             "--nproc_per_node N -m dofsynth -- train ... --device cuda. Which config goes with "
-            "which data recipe, and every key: `dofsynth docs training`."
+            "which data recipe, and every key: `dofsynth docs training`. A config with [train] task = "
+            "\"depth\" (train-depth-tiny, train-depth) trains the depth-prediction network instead, on "
+            "the data set's disparity and coverage and on the [depth] rgbd and mattes folders."
         ),
     )
     p.add_argument("config", help="training config: a TOML file or a shipped name (train-tiny, train-demo, "
-                                   "train-learn, train-deeplens; `dofsynth recipes list`)")
+                                   "train-learn, train-deeplens, train-depth-tiny, train-depth; `dofsynth recipes list`)")
     p.add_argument("--data", required=True, help="data set folder written by `dofsynth generate`")
     p.add_argument("--run", required=True, help="run folder for checkpoints, logs and config")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],

@@ -17,6 +17,7 @@ import torch
 
 from dofsynth.files import AtomicFile
 from dofsynth.train.config import Config, from_dict
+from dofsynth.train.depth import DepthNet
 from dofsynth.train.models import DeepLensNet
 
 CHECKPOINT = "ckpt.pt"
@@ -67,12 +68,18 @@ def load(path: str | Path, map_location="cpu") -> dict:
     return state
 
 
-def load_model(run_dir: str | Path, device="cpu") -> tuple[DeepLensNet, Config]:
-    """The trained model (eval mode, on `device`) and the config of RUN/ckpt.pt."""
+def build_model(cfg: Config) -> DeepLensNet | DepthNet:
+    """The untrained network of the config's [train] task."""
+    return DepthNet(cfg.depth) if cfg.train.task == "depth" else DeepLensNet(cfg.model)
+
+
+def load_model(run_dir: str | Path, device="cpu") -> tuple[DeepLensNet | DepthNet, Config]:
+    """The trained model (eval mode, on `device`) and the config of RUN/ckpt.pt (a DeepLensNet,
+    or a DepthNet when its [train] task is "depth")."""
     run_dir = Path(run_dir)
     path = run_dir / CHECKPOINT if run_dir.is_dir() else run_dir
     state = load(path)
     cfg = from_dict(state["config"], str(path))
-    model = DeepLensNet(cfg.model)
+    model = build_model(cfg)
     model.load_state_dict(state["model"])
     return model.to(device).eval(), cfg

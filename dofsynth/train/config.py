@@ -1,8 +1,8 @@
 """The training configuration: frozen dataclasses, one per TOML table, read by the one typed
 reader (dofsynth.config).
 
-A training recipe (recipes/train-*.toml) has the tables [data], [augment], [model], [loss],
-[train] and [infer]; every key is optional and its default and range live on its field below.
+A training recipe (recipes/train-*.toml) has the tables [data], [augment], [model], [depth],
+[loss], [train] and [infer]; every key is optional and its default and range live on its field below.
 A wrong type, a value out of range, an unknown table or key is refused with `ConfigError`
 naming the file and the dotted key, so a typo never silently trains the wrong thing.
 `dofsynth.train.data.resolve()` fills the two values that come from the data (`model.coc_ref`,
@@ -21,7 +21,8 @@ dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
 
 # The data recipe each shipped training config (recipes/) is sized for; docs/training.md has the table.
 DATA_RECIPES = {"train-tiny.toml": "smoke.toml", "train-demo.toml": "demo.toml", "train-learn.toml": "learn.toml",
-                "train-deeplens.toml": "deeplens-18k.toml"}
+                "train-deeplens.toml": "deeplens-18k.toml", "train-depth-tiny.toml": "smoke.toml",
+                "train-depth-learn.toml": "learn.toml", "train-depth.toml": "deeplens-18k.toml"}
 
 
 @dataclass_kw
@@ -70,6 +71,23 @@ class ModelConfig:
 
 
 @dataclass_kw
+class DepthConfig:
+    """The depth-prediction network and its data ([train] task = "depth"; dofsynth.train.depth).
+    Paths are relative to the config file."""
+    backbone: str = key("resnet50", choices=("resnet50", "resnet18"))  # encoder: conv1 .. layer3 of it
+    width: int = key(64, lo=4)              # channels of conv1 (64 = torchvision's; ImageNet weights need 64)
+    weights: str = key("")                  # local torchvision ImageNet state_dict of the backbone; "" = random init
+    decoder_width: int = key(256, lo=8)     # channels after pyramid pooling; halved at each x2 upsampling
+    bins: tuple[int, ...] = key((1, 2, 4, 8), lo=1)  # pyramid pooling bin sizes
+    gamma: float = key(1.0, lo=0.0)         # J_d = |D - D^g|_1 + gamma |S - S^g|_1
+    shards: bool = key(True)                # train on --data's shards (their disparity and coverage)
+    rgbd: str = key("")                     # folder of RGB-D pairs: rgb/NAME.(png|jpg...) + depth/NAME.(exr|png|npy)
+    rgbd_quantity: str = key("depth", choices=("depth", "disparity"))  # what the rgbd depth files hold (any scale)
+    mattes: str = key("")                   # matting set for segmentation: fg/NAME.* + alpha/NAME.* (alpha >= 0.5)
+    seg_share: float = key(0.25, lo=0.0, hi=1.0)  # share of each batch drawn from `mattes` (when given)
+
+
+@dataclass_kw
 class LossConfig:
     alpha: float = key(1.5, lo=0.0)    # J = sum|e|^(alpha+1) / sum|e|^alpha
     beta: float = key(1.0, lo=0.0)     # loss = J(L) + beta * J(H)
@@ -79,6 +97,7 @@ class LossConfig:
 
 @dataclass_kw
 class TrainConfig:
+    task: str = key("render", choices=("render", "depth"))  # the DoF networks, or the depth network ([depth])
     seed: int = key(0, lo=0)
     max_steps: int = key(20000, lo=0)
     lr: float = key(3e-4, lo=0.0, lo_open=True)
@@ -105,6 +124,7 @@ class Config:
     data: DataConfig = table(DataConfig)
     augment: AugmentConfig = table(AugmentConfig)
     model: ModelConfig = table(ModelConfig)
+    depth: DepthConfig = table(DepthConfig)
     loss: LossConfig = table(LossConfig)
     train: TrainConfig = table(TrainConfig)
     infer: InferConfig = table(InferConfig)
@@ -132,7 +152,11 @@ def load(path: str | Path) -> Config:
     """Read a training config (TOML), or the shipped one of that name ("train-demo"); a
     missing file raises FileNotFoundError naming it."""
     path = recipe_path(path)
-    return from_dict(parse_toml(read_text(path, "training config"), str(path)), str(path))
+    cfg = from_dict(parse_toml(read_text(path, "training config"), str(path)), str(path))
+    here = Path(path).resolve().parent
+    paths = {k: str(here / v) for k in ("weights", "rgbd", "mattes")
+             if (v := getattr(cfg.depth, k)) and not Path(v).is_absolute()}
+    return replace(cfg, "depth", **paths) if paths else cfg
 
 
 def replace(cfg: Config, table_name: str, **kw) -> Config:

@@ -309,7 +309,7 @@ class DofShards(IterableDataset):
         return wds.shuffle(size, min(size, 64), rng=random.Random(seed))(items)
 
 
-def _quiet_worker(_worker_id: int) -> None:
+def quiet_worker(_worker_id: int) -> None:
     """DataLoader workers leave Ctrl-C to the training process (one line, not a traceback each)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
@@ -321,7 +321,7 @@ def make_loader(data_dir: str | Path, split: str, cfg: Config, *, train: bool, s
     ds = DofShards(segs, cfg, train=train, seed=seed, split=split)
     workers = cfg.data.num_workers
     loader = DataLoader(ds, batch_size=cfg.data.batch_size, num_workers=workers, pin_memory=pin_memory,
-                        prefetch_factor=4 if workers else None, worker_init_fn=_quiet_worker,
+                        prefetch_factor=4 if workers else None, worker_init_fn=quiet_worker,
                         generator=torch.Generator().manual_seed(seed))
     return ds, loader
 

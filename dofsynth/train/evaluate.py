@@ -15,6 +15,10 @@ differently are scored on the same inputs. PSNR and SSIM (skimage.metrics, sRGB 
 data_range 1) are taken against the rendered target, and PSNR also in the band within the
 target's max CoC of a depth edge of the clean disparity ("psnr_edge"), where a single-image
 renderer fails. The table is printed and written to RUN/eval.csv and RUN/eval.json.
+
+A depth run ([train] task = "depth") is scored by `evaluate_depth` instead: the MAE of its
+normalized disparity against the split's (min-max normalized) disparity, raw and after the
+paper's 5-knot linear-spline fit (dofsynth.train.depth.depth_errors), beside the best constant.
 """
 from __future__ import annotations
 
@@ -30,12 +34,14 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from dofsynth.color import linear_to_srgb, srgb_to_linear
 from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
 from dofsynth.highlight import boost, unboost
+from dofsynth.io import decode_image
 from dofsynth.record import decode_depth
 from dofsynth.optics.aperture import aperture_from_dict
 from dofsynth.render import Plane, render_planes
 from dofsynth.train.checkpoint import load_model
 from dofsynth.train.config import AugmentConfig, load
 from dofsynth.train.data import find_segments, raw_samples, sample_rng, training_item
+from dofsynth.train.depth import depth_errors, predict_disparity
 
 METHODS = ("network", "classical", "all-in-focus")
 DEPTH_KINDS = {"morph": "morph_prob", "edge_blur": "edge_blur_prob", "noise": "noise_prob",
@@ -117,6 +123,8 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
     run_dir = Path(run_dir)
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     model, cfg = load_model(run_dir, device)
+    if cfg.train.task == "depth":
+        return evaluate_depth(model, cfg, run_dir, data_dir, split=split, limit=limit, write=write)
     augment = depth_corruption(depth, cfg.augment)
     to_srgb = (lambda x: x) if cfg.data.color == "srgb" else linear_to_srgb
     items = []
@@ -157,7 +165,43 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
     return result
 
 
+DEPTH_FIELDS = ["method", "mae", "mae_spline", "n"]
+
+
+def evaluate_depth(model, cfg, run_dir: str | Path, data_dir: str | Path, *, split: str = "test",
+                   limit: int | None = None, write: bool = True, part: str = "all") -> dict:
+    """Score a depth network on the first `limit` samples of `split` (its `part`: "val" is the
+    train split's held-out [data] val_share; whole images at the training scale); returns {"kind": "depth", "table": [{"method", "mae", "mae_spline", "n"}],
+    "items": [...]} (methods "network" and "constant") and writes RUN/eval.{csv,json}."""
+    items = []
+    for n, raw in enumerate(raw_samples(find_segments(data_dir, split, part, cfg.data.val_share), split)):
+        if limit is not None and n >= limit:
+            break
+        key = raw["__key__"]
+        gt = decode_depth(raw["depth.exr"], f"{key}.depth.exr")
+        if np.ptp(gt) < 1e-6:
+            continue  # a flat scene has no depth order to predict
+        image = decode_image(raw["aif.png"], f"{key}.aif.png")[:, :, :3]
+        pred = predict_disparity(model, image, cfg.data.crop)
+        items.append({"key": key, **depth_errors(pred, (gt - gt.min()) / np.ptp(gt))})
+    if not items:
+        raise ValueError(f"{data_dir}/{split}: no samples with a depth range to evaluate")
+    mean = {k: float(np.mean([r[k] for r in items])) for k in ("mae", "mae_spline", "mae_constant")}
+    table = [{"method": "network", "mae": mean["mae"], "mae_spline": mean["mae_spline"], "n": len(items)},
+             {"method": "constant", "mae": mean["mae_constant"], "mae_spline": mean["mae_constant"], "n": len(items)}]
+    result = {"kind": "depth", "split": split, "table": table, "items": items}
+    if write:
+        atomic_write_bytes(Path(run_dir) / "eval.csv", csv_text(DEPTH_FIELDS, table).encode())
+        atomic_write_bytes(Path(run_dir) / "eval.json", canonical_json(result, indent=1))
+    return result
+
+
 def format_table(result: dict) -> str:
+    if result.get("kind") == "depth":
+        lines = ["normalized disparity, mean absolute error (the constant: the best flat map)",
+                 f"{'method':<14} {'MAE':>7} {'MAE spline':>11} {'n':>5}"]
+        lines += [f"{r['method']:<14} {r['mae']:>7.4f} {r['mae_spline']:>11.4f} {r['n']:>5}" for r in result["table"]]
+        return "\n".join(lines)
     lines = [f"depth given: {result.get('depth', 'run')}",
              f"{'method':<14} {'PSNR dB':>8} {'SSIM':>7} {'edge dB':>8} {'n':>5}"]
     for r in result["table"]:

@@ -1,6 +1,7 @@
 """Apply a trained run to any photo and disparity map, at any resolution.
 
     render_photo(run_dir, image_linear, disparity, focus, aperture=1.0) -> linear RGB (H, W, 3)
+    predict_depth(run_dir, image_linear) -> normalized disparity (H, W)   (a depth run)
 
 The lens blur runs at exactly the training low-resolution scale: the photo is area-resized so
 that its long side is [infer] low_res_side (the training image side / 2**levels), so a blur
@@ -23,6 +24,7 @@ import torch
 
 from dofsynth.color import linear_to_srgb, srgb_to_linear
 from dofsynth.train.checkpoint import CHECKPOINT, load_model
+from dofsynth.train.depth import predict_disparity
 from dofsynth.train.models import area_resize, bilinear
 
 _MODELS: dict = {}
@@ -36,7 +38,8 @@ def cached_model(run_dir: str | Path, device: str):
         raise FileNotFoundError(f"{path}: no trained model (run `dofsynth train` first)")
     key = (str(path.resolve()), path.stat().st_mtime_ns, device)
     if key not in _MODELS:
-        _MODELS.clear()
+        if len(_MODELS) >= 2:  # a depth run and a DoF run at most
+            _MODELS.clear()
         _MODELS[key] = load_model(path, device)
     return _MODELS[key]
 
@@ -77,9 +80,33 @@ def render_photo(run_dir: str | Path, image_linear: np.ndarray, disparity: np.nd
         raise ValueError(f"focus must be a disparity in [0, 1], got {focus}")
     if not (math.isfinite(aperture) and 0.0 < aperture <= 1.0):
         raise ValueError(f"aperture (r*/r_max) must lie in (0, 1], got {aperture}")
+    model, cfg = run_of(run_dir, "render", device)
+    return render_with(model, cfg, image, disp, focus, aperture)
+
+
+def run_task(run_dir: str | Path) -> str:
+    """The [train] task of a run: "render" (the DoF networks) or "depth"."""
+    return cached_model(run_dir, "cpu")[1].train.task
+
+
+def run_of(run_dir: str | Path, task: str, device: str | None = None):
+    """(model, config) of a run of `task`; a run of the other task raises ValueError."""
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     model, cfg = cached_model(run_dir, device)
-    return render_with(model, cfg, image, disp, focus, aperture)
+    if cfg.train.task != task:
+        what = {"render": "the DoF networks", "depth": "the depth network"}
+        raise ValueError(f"{run_dir}: a run of {what[cfg.train.task]}, not of {what[task]}")
+    return model, cfg
+
+
+def predict_depth(run_dir: str | Path, image_linear: np.ndarray, *, device: str | None = None) -> np.ndarray:
+    """(H, W) float32 normalized disparity (1 = nearest) of a photo, linear RGB (H, W, 3), by
+    the depth network of `run_dir` (at its training scale: short side [data] crop)."""
+    image = np.asarray(image_linear, dtype=np.float32)
+    if image.ndim != 3 or image.shape[2] != 3 or not np.all(np.isfinite(image)):
+        raise ValueError(f"image_linear must be finite (H, W, 3), got shape {image.shape}")
+    model, cfg = run_of(run_dir, "depth", device)
+    return predict_disparity(model, linear_to_srgb(np.clip(image, 0.0, 1.0)), cfg.data.crop)
 
 
 def render_with(model, cfg, image: np.ndarray, disp: np.ndarray, focus: float, aperture: float = 1.0) -> np.ndarray:

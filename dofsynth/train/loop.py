@@ -1,4 +1,6 @@
-"""The training loop, in the manner of nanoGPT's train.py: one function, top to bottom.
+"""The training loop, in the manner of nanoGPT's train.py: one function, top to bottom. It
+trains the DoF networks (DeepLensNet) or, with [train] task = "depth", the depth network
+(dofsynth.train.depth); `forward_loss` and `evaluate` are the only places they differ.
 
     dofsynth train recipes/train-tiny.toml --data OUT --run RUN             # CPU or one GPU
     torchrun --nproc_per_node 8 -m dofsynth -- train CONFIG --data OUT --run RUN --device cuda
@@ -36,11 +38,12 @@ from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
 from dofsynth.train import checkpoint
 from dofsynth.train.config import Config, from_dict, to_toml
 from dofsynth.train.data import make_loader, resolve
+from dofsynth.train.depth import depth_loss, load_backbone, minmax
+from dofsynth.train.depth_data import make_depth_loader
 from dofsynth.train.loss import deeplens_loss
-from dofsynth.train.models import DeepLensNet
 
-LOG_FIELDS = ["step", "epoch", "lr", "loss", "loss_low", "loss_high", "val_loss", "val_psnr",
-              "samples_per_s", "elapsed_s"]
+LOG_FIELDS = ["step", "epoch", "lr", "loss", "loss_low", "loss_high", "loss_depth", "loss_seg",
+              "val_loss", "val_psnr", "val_mae", "samples_per_s", "elapsed_s"]
 
 
 def learning_rate(step: int, cfg: Config) -> float:
@@ -86,9 +89,9 @@ def check_finite(loss: torch.Tensor, batch: dict, step: int, last_saved: int | N
     its inputs, if any); nothing of this step is applied or saved."""
     if bool(torch.isfinite(loss).item()):
         return
-    where = [f"{k} ({s})" for k, s in zip(batch["key"], batch.get("shard", [""] * len(batch["key"])))]
-    bad = [w for i, w in enumerate(where)
-           if any(not torch.isfinite(batch[f][i]).all() for f in ("image", "signed_lo", "target"))]
+    where = [f"{k} ({s})" if s else k for k, s in zip(batch["key"], batch.get("shard", [""] * len(batch["key"])))]
+    inputs = [v for v in batch.values() if torch.is_tensor(v) and v.is_floating_point() and v.ndim == 4]
+    bad = [w for i, w in enumerate(where) if any(not torch.isfinite(v[i]).all() for v in inputs)]
     kept = f"; the checkpoint of step {last_saved} is kept" if last_saved else ""
     what = f"NaN or inf in the inputs of {', '.join(bad)}" if bad else f"batch of {', '.join(where)}"
     raise ValueError(f"step {step + 1}: the loss is {loss.item()} ({what}){kept}")
@@ -104,32 +107,47 @@ def psnr_each(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return 10 * torch.log10(1.0 / mse.clamp_min(1e-10))
 
 
+def forward_loss(model, b: dict, cfg: Config):
+    """(loss, {log field: term}, per-sample score) of one batch: for the DoF networks J(L) +
+    beta J(H) and the PSNR of H (dB); for the depth network J_d and the MAE of the normalized
+    disparity."""
+    if cfg.train.task == "depth":
+        depth, seg = model(b["image"])
+        loss, j_d, j_s = depth_loss(depth, seg, b, cfg.depth.gamma)
+        valid = b["depth_valid"] > 0.5
+        mae = ((minmax(depth, valid) - b["depth"]).abs() * valid).flatten(1).sum(1) / valid.flatten(1).sum(1).clamp_min(1)
+        return loss, {"loss_depth": j_d, "loss_seg": j_s}, mae[b["has_depth"] > 0]
+    low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"])
+    loss, j_low, j_high = deeplens_loss(low, high, b["target_lo"], b["target"],
+                                        cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps, cfg.loss.l1)
+    return loss, {"loss_low": j_low, "loss_high": j_high}, psnr_each(high, b["target"])
+
+
 @torch.no_grad()
 def evaluate(model, loader, cfg: Config, device, autocast) -> dict:
-    """Loss (per batch) and PSNR of H (per sample), averaged over the whole validation share
-    (or its first train.eval_batches batches when that is > 0), all ranks together."""
+    """Loss (per batch) and the score of `forward_loss` (per sample: val_psnr, or val_mae for
+    the depth network), averaged over the whole validation share (or its first
+    train.eval_batches batches when that is > 0), all ranks together."""
     model.eval()
-    totals = torch.zeros(4, device=device, dtype=torch.float64)  # loss sum, batches, psnr sum, samples
+    totals = torch.zeros(4, device=device, dtype=torch.float64)  # loss sum, batches, score sum, samples
     for i, batch in enumerate(loader):
         if cfg.train.eval_batches and i >= cfg.train.eval_batches:
             break
         b = to_device(batch, device)
         with autocast:
-            low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"])
-        loss, _, _ = deeplens_loss(low, high, b["target_lo"], b["target"], cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps, cfg.loss.l1)
-        p = psnr_each(high, b["target"])
+            loss, _, score = forward_loss(model, b, cfg)
         totals += torch.stack([loss.double(), torch.ones((), device=device, dtype=torch.float64),
-                               p.double().sum(), torch.tensor(float(p.numel()), device=device, dtype=torch.float64)])
+                               score.double().sum(), torch.tensor(float(score.numel()), device=device, dtype=torch.float64)])
     if dist.is_initialized():
         dist.all_reduce(totals)
     model.train()
-    return {"val_loss": totals[0].item() / max(1.0, totals[1].item()),
-            "val_psnr": totals[2].item() / max(1.0, totals[3].item())}
+    name = "val_mae" if cfg.train.task == "depth" else "val_psnr"
+    return {"val_loss": totals[0].item() / max(1.0, totals[1].item()), name: totals[2].item() / max(1.0, totals[3].item())}
 
 
 def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str = "auto",
           stop_at: int | None = None, out=None) -> dict:
-    """Train (or continue training) a DeepLensNet; returns {"step", "loss", "val_loss", ...}.
+    """Train (or continue training) the config's network; returns {"step", "loss", "val_loss", ...}.
 
     stop_at: stop after this step (at most train.max_steps) this time; the learning-rate
     schedule still runs to train.max_steps, so stopping and resuming changes nothing.
@@ -155,7 +173,8 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
 
     # -- config, run folder, resume ------------------------------------------------------------
     run_dir = Path(run_dir)
-    cfg = resolve(cfg, data_dir)
+    depth_task = cfg.train.task == "depth"
+    cfg = cfg if depth_task else resolve(cfg, data_dir)
     ckpt_path = run_dir / checkpoint.CHECKPOINT
     state = checkpoint.load(ckpt_path) if ckpt_path.is_file() else None  # on the CPU: RNG states stay CPU tensors
     if state is not None:
@@ -173,7 +192,10 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
     # -- model, optimizer, precision -----------------------------------------------------------
     t = cfg.train
     torch.manual_seed(t.seed)  # the same initial weights on every rank
-    model = DeepLensNet(cfg.model).to(device)
+    model = checkpoint.build_model(cfg)
+    if depth_task and cfg.depth.weights and state is None:
+        say(f"backbone: {load_backbone(model, cfg.depth.weights)} tensors from {cfg.depth.weights}")
+    model = model.to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=t.lr, betas=tuple(t.betas),
                                   weight_decay=t.weight_decay)
     step, epoch, batch_index, best_val = 0, 0, 0, None
@@ -200,13 +222,12 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
         model = DistributedDataParallel(model, device_ids=[torch.device(device).index] if cuda else None)
 
     # -- data ------------------------------------------------------------------------------------
-    train_ds, train_loader = make_loader(data_dir, "train", cfg, train=True, seed=t.seed, part="fit",
-                                         pin_memory=cuda)
+    loader_of = make_depth_loader if depth_task else (lambda d, *a, **k: make_loader(d, "train", *a, **k))
+    train_ds, train_loader = loader_of(data_dir, cfg, train=True, seed=t.seed, part="fit", pin_memory=cuda)
     eval_loader = None
     if cfg.data.val_share > 0 and t.eval_interval > 0:
         try:
-            _, eval_loader = make_loader(data_dir, "train", cfg, train=False, seed=t.seed, part="val",
-                                         pin_memory=cuda)
+            _, eval_loader = loader_of(data_dir, cfg, train=False, seed=t.seed, part="val", pin_memory=cuda)
         except FileNotFoundError:
             say("the train split is too small to hold out a validation share: periodic evaluation is off")
     else:
@@ -241,9 +262,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
         epoch, batch_index, batch = next(batches)
         b = to_device(batch, device)
         with autocast:
-            low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"])
-        loss, j_low, j_high = deeplens_loss(low, high, b["target_lo"], b["target"],
-                                            cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps, cfg.loss.l1)
+            loss, terms, _ = forward_loss(model, b, cfg)
         check_finite(loss, b, step, last_saved)
         scaler.scale(loss).backward()
         if t.grad_clip > 0:
@@ -262,7 +281,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
             loss_value = loss.item()
             elapsed = time.perf_counter() - t0 - eval_s  # training time only
             row = {"step": step, "epoch": epoch, "lr": f"{lr:.3g}", "loss": f"{loss_value:.6g}",
-                   "loss_low": f"{j_low.item():.6g}", "loss_high": f"{j_high.item():.6g}",
+                   **{k: f"{v.item():.6g}" for k, v in terms.items()},
                    "samples_per_s": f"{samples / elapsed:.3g}", "elapsed_s": f"{elapsed:.1f}"}
         if eval_loader is not None and t.eval_interval > 0 and (step % t.eval_interval == 0 or last):
             t_eval = time.perf_counter()
@@ -274,7 +293,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
             writer.writerow(row)
             log_file.flush()
             if tb is not None:
-                for k in ("loss", "loss_low", "loss_high", "val_loss", "val_psnr", "lr"):
+                for k in LOG_FIELDS[2:-2]:
                     if k in row:
                         tb.add_scalar(k, float(row[k]), step)
             if "loss" in row:
