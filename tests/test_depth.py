@@ -180,6 +180,10 @@ def test_rgbd_depth_becomes_normalized_disparity_and_mattes_become_segmentation(
     t = fit_crop(x, 32, np.random.default_rng(0))
     assert t["image"].shape == (3, 32, 32) and t["depth"].shape == t["seg"].shape == (1, 32, 32)
     assert t["has_depth"] == 1 and t["has_seg"] == 0
+    ramp = {"image": np.zeros((20, 100, 3), np.float32), "depth": np.tile(np.linspace(0, 1, 100, dtype=np.float32), (20, 1)),
+            "valid": np.ones((20, 100), bool), "seg": None}
+    crop = fit_crop(ramp, 20, np.random.default_rng(1))["depth"]   # a fifth of the ramp ...
+    assert crop.min() == 0 and crop.max() == pytest.approx(1)       # ... normalized again, as the prediction is
 
 
 def test_a_file_without_its_partner_is_named(tmp_path):

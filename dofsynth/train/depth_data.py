@@ -8,8 +8,8 @@ Sources ([depth] table of the config):
           unknown) or disparity (any scale), as [depth] rgbd_quantity says. Depth term only.
   mattes  a matting set in the fg/NAME.* + alpha/NAME.* layout: segmentation = alpha >= 0.5.
           Segmentation term only.
-Depth becomes disparity (1 / depth) and every map is min-max normalized over its known pixels,
-as the paper normalises both prediction and ground truth.
+Depth becomes disparity (1 / depth) and every map is min-max normalized over its known pixels
+(again over the crop), as the paper normalises both prediction and ground truth.
 
 One item (float32 tensors, C = [data] crop): image (3, C, C) sRGB in [0, 1]; depth (1, C, C)
 normalized disparity; depth_valid (1, C, C) 1 where known; seg (1, C, C) in {0, 1};
@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset
 
+from dofsynth.color import linear_to_srgb
 from dofsynth.image import resize
 from dofsynth.io import decode_image, normalize_disparity, read_depth, read_image, unit_float
 from dofsynth.record import decode_depth
@@ -121,6 +122,8 @@ def load_item(item: Item, quantity: str = "depth", index_cache: dict | None = No
         return {"image": image, "depth": depth, "valid": valid,
                 "seg": (np.maximum(cover[:, :, 0], cover[:, :, 1]) >= 128).astype(np.float32)}
     image = _rgb(read_image(item.path))
+    if Path(item.path).suffix.lower() == ".exr":  # linear light: the network sees sRGB
+        image = linear_to_srgb(image)
     if item.kind == "rgbd":
         z = read_depth(item.other)
         _same_size(image, z, item.path, item.other)
@@ -151,6 +154,9 @@ def fit_crop(x: dict, side: int, rng: np.random.Generator | None) -> dict:
         depth = np.where(known > 0.5, fit(x["depth"] * x["valid"]) / np.maximum(known, 1e-6), 0.0)
         valid = known > 0.5
         has_depth = valid.sum() >= 16 and np.ptp(depth[valid]) > 1e-3
+        if has_depth:  # normalized again over the crop, as the prediction is
+            lo, hi = depth[valid].min(), depth[valid].max()
+            depth = np.where(valid, (depth - lo) / (hi - lo), 0.0)
     else:
         depth = valid = np.zeros((side, side), np.float32)
         has_depth = False
@@ -220,7 +226,8 @@ def make_depth_loader(data_dir, cfg: Config, *, train: bool, seed: int, part: st
     """The dataset and a DataLoader of [data] batch_size / num_workers (as make_loader)."""
     depth, seg = sources(cfg, data_dir, part)
     if not depth and not seg:
-        raise FileNotFoundError(f"no {part} samples for the depth network")
+        raise FileNotFoundError(f"no {part} samples for the depth network (validation uses the shards' "
+                                "held-out share: [depth] shards with --data)")
     ds = DepthMix(depth, seg, cfg, train=train, seed=seed)
     workers = cfg.data.num_workers
     loader = DataLoader(ds, batch_size=cfg.data.batch_size, num_workers=workers, pin_memory=pin_memory,

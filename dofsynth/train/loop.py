@@ -228,8 +228,8 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
     if cfg.data.val_share > 0 and t.eval_interval > 0:
         try:
             _, eval_loader = loader_of(data_dir, cfg, train=False, seed=t.seed, part="val", pin_memory=cuda)
-        except FileNotFoundError:
-            say("the train split is too small to hold out a validation share: periodic evaluation is off")
+        except FileNotFoundError as exc:
+            say(f"no validation share ({exc}): periodic evaluation is off")
     else:
         say("data.val_share = 0 or train.eval_interval = 0: periodic evaluation is off")
     batches = batch_stream(train_ds, train_loader, epoch, batch_index)
