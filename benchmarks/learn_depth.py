@@ -8,7 +8,9 @@ of the built-in assets), generated into OUT/data or reused. Runs (recipes/train-
 in OUT/runs/depth-<name>, reused when finished):
   "shards + mattes"  the shards' disparity and coverage, plus the segmentation term on the
                      mattes of ../shared/assets (fg/ + alpha/) where they are present;
-  "shards only"      without the mattes.
+  "shards only"      without the mattes;
+  "shards only, colour jitter"   [depth] jitter = 0.8: random colour order, saturation,
+                     contrast and brightness, so depth must come from structure, not colour.
 Then MAE of the min-max normalized disparity, raw and after the paper's 5-knot linear-spline fit
 to the ground truth, for the untrained network, each run and the best constant map (the spline
 fit of a flat prediction), on two sets: the held-out validation share of the train split (new
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import re
 import sys
 import time
 from pathlib import Path
@@ -46,7 +49,7 @@ def main() -> None:
     torch.set_num_threads(2)
     data = make_data(out)
     base = load(CONFIG)
-    runs = {"shards only": base}
+    runs = {"shards only": base, "shards only, colour jitter": replace(base, "depth", jitter=0.8)}
     if (MATTES / "alpha").is_dir():
         runs = {"shards + mattes": replace(base, "depth", mattes=str(MATTES)), **runs}
     else:
@@ -62,7 +65,7 @@ def main() -> None:
     torch.manual_seed(base.train.seed)
     rows.append(("untrained", scores(checkpoint.build_model(base).eval(), base)))
     for name, cfg in runs.items():
-        folder = out / "runs" / f"depth-{name.replace(' ', '').replace('+', '-')}"
+        folder = out / "runs" / ("depth-" + re.sub(r"[^a-z0-9]+", "-", name))
         t0 = time.perf_counter()
         train(cfg, data, folder, device="cpu", out=io.StringIO())
         print(f"  trained {name!r} in {time.perf_counter() - t0:.0f} s (0 s: reused)", flush=True)

@@ -186,6 +186,19 @@ def test_rgbd_depth_becomes_normalized_disparity_and_mattes_become_segmentation(
     assert crop.min() == 0 and crop.max() == pytest.approx(1)       # ... normalized again, as the prediction is
 
 
+def test_colour_jitter_changes_only_the_image_and_is_off_by_default(tmp_path):
+    _write_rgbd(tmp_path / "rgbd", n=1)
+    x = load_item(Item("rgbd", str(tmp_path / "rgbd/rgb/p0.png"), str(tmp_path / "rgbd/depth/p0.npy")), "depth")
+    plain = fit_crop(x, 32, np.random.default_rng(5))
+    assert all(torch.equal(plain[k], fit_crop(x, 32, np.random.default_rng(5), 0.0)[k]) for k in plain)
+    jittered = fit_crop(x, 32, np.random.default_rng(5), 1.0)
+    for k in ("depth", "depth_valid", "seg"):   # the same crop and flip: only the colours change
+        assert torch.equal(plain[k], jittered[k])
+    assert not torch.equal(plain["image"], jittered["image"])
+    assert 0 <= jittered["image"].min() and jittered["image"].max() <= 1
+    assert torch.equal(fit_crop(x, 32, None, 1.0)["image"], fit_crop(x, 32, None)["image"])   # never in evaluation
+
+
 def test_a_file_without_its_partner_is_named(tmp_path):
     _write_rgbd(tmp_path / "rgbd")
     (tmp_path / "rgbd/rgb/extra.png").write_bytes((tmp_path / "rgbd/rgb/p0.png").read_bytes())

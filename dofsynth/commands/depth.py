@@ -15,8 +15,7 @@ scale (short side [data] crop) and the map is resized to the photo's size.
 
 OUT: a float32 EXR (channel `disparity`, what `dofsynth render --depth` reads) or a 16-bit grey
 PNG (0..65535 = 0..1), or a folder (existing, or ending in /) for IMAGE_STEM.depth.exr; written
-atomically. `dofsynth render IMAGE --model RUN` without --depth
-does this step itself.
+atomically. `dofsynth render IMAGE --model RUN` without --depth does this step itself.
 """
 
 EPILOG = """\

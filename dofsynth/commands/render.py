@@ -29,6 +29,7 @@ the DeepLens paper does (inverted for depth, then min-max to [0, 1]).
 --model RUN (repeatable) renders with trained networks: a run of the DoF networks replaces the
 classical renderer; a run of the depth network (`[train] task = "depth"`) predicts DEPTH from
 the photo when --depth is not given, so one photo is enough.
+
 OUT is an sRGB 8-bit PNG, or a linear float32 RGB EXR when it ends in .exr; or a folder (existing,
 or ending in /), which receives IMAGE_STEM.dof.png. Written atomically.
 """

@@ -85,6 +85,8 @@ class DepthConfig:
     rgbd_quantity: str = key("depth", choices=("depth", "disparity"))  # what the rgbd depth files hold (any scale)
     mattes: str = key("")                   # matting set for segmentation: fg/NAME.* + alpha/NAME.* (alpha >= 0.5)
     seg_share: float = key(0.25, lo=0.0, hi=1.0)  # share of each batch drawn from `mattes` (when given)
+    jitter: float = key(0.0, lo=0.0, hi=1.0)  # probability of a photometric jitter per training image (colour order,
+                                              # saturation, contrast, brightness): depth from structure, not colour
 
 
 @dataclass_kw

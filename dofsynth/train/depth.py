@@ -191,14 +191,20 @@ def minmax(x: torch.Tensor, mask: torch.Tensor | None = None, eps: float = 1e-6)
     return ((x - lo) / (hi - lo).clamp_min(eps)).clamp(0, 1)
 
 
+def depth_mae(depth: torch.Tensor, batch: dict) -> torch.Tensor:
+    """(B,) mean absolute error of each prediction, min-max normalized over its known pixels
+    (batch["depth_valid"]), against batch["depth"] (normalized already), over those pixels."""
+    valid = batch["depth_valid"] > 0.5
+    err = (minmax(depth, valid) - batch["depth"].float()).abs() * valid
+    return err.flatten(1).sum(1) / valid.flatten(1).sum(1).clamp_min(1)
+
+
 def depth_loss(depth: torch.Tensor, seg: torch.Tensor, batch: dict, gamma: float = 1.0):
     """(J_d, depth term, segmentation term) of a mixed batch. Each term is the mean over the
     samples that have that supervision (batch["has_depth"], ["has_seg"], (B,) in {0, 1}) of
     the per-sample mean absolute error (depth: over batch["depth_valid"] pixels, prediction
     min-max normalized over them; batch["depth"] is normalized already); 0 without any."""
-    valid = batch["depth_valid"] > 0.5
-    d = minmax(depth, valid)
-    err_d = ((d - batch["depth"].float()).abs() * valid).flatten(1).sum(1) / valid.flatten(1).sum(1).clamp_min(1)
+    err_d = depth_mae(depth, batch)
     err_s = (seg.float() - batch["seg"].float()).abs().flatten(1).mean(1)
     has_d, has_s = batch["has_depth"].float(), batch["has_seg"].float()
     j_d = (err_d * has_d).sum() / has_d.sum().clamp_min(1)

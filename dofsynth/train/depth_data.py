@@ -15,7 +15,8 @@ One item (float32 tensors, C = [data] crop): image (3, C, C) sRGB in [0, 1]; dep
 normalized disparity; depth_valid (1, C, C) 1 where known; seg (1, C, C) in {0, 1};
 has_depth, has_seg (0-d, 1 when the item has that supervision); key (the file or sample).
 Every image is resized so that its short side is C, then cropped to C x C (training: a random
-crop and a random horizontal flip; evaluation: the centre).
+crop, a random horizontal flip and, with probability [depth] jitter, random colours;
+evaluation: the centre).
 
 Batches: each training batch takes round(batch_size * seg_share) items from `mattes` (when
 given) and the rest from the depth sources, each in a per-epoch permutation (the shorter list
@@ -134,9 +135,22 @@ def load_item(item: Item, quantity: str = "depth", index_cache: dict | None = No
     return {"image": image, "depth": None, "valid": None, "seg": (alpha[:, :, -1] >= 0.5).astype(np.float32)}
 
 
-def fit_crop(x: dict, side: int, rng: np.random.Generator | None) -> dict:
+def jitter_colour(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A random photometric change of an sRGB (H, W, 3) image in [0, 1]: the colour channels in
+    a random order, saturation x [0.4, 1.6], contrast x [0.7, 1.3] about the mean, brightness x
+    [0.7, 1.3]; clipped to [0, 1]."""
+    x = image[:, :, rng.permutation(3)]
+    grey = x.mean(axis=2, keepdims=True)
+    x = grey + (x - grey) * rng.uniform(0.4, 1.6)
+    m = x.mean()
+    x = (m + (x - m) * rng.uniform(0.7, 1.3)) * rng.uniform(0.7, 1.3)
+    return np.clip(x, 0.0, 1.0).astype(np.float32)
+
+
+def fit_crop(x: dict, side: int, rng: np.random.Generator | None, jitter: float = 0.0) -> dict:
     """Resize so that the short side is `side`, crop side x side (random with `rng`, else the
-    centre) and flip horizontally at random (with `rng`): the tensors of an item."""
+    centre), flip horizontally at random and, with probability `jitter`, change the colours
+    (`jitter_colour`; both only with `rng`): the tensors of an item."""
     h, w = x["image"].shape[:2]
     f = side / min(h, w)
     nh, nw = max(side, round(h * f)), max(side, round(w * f))
@@ -166,7 +180,10 @@ def fit_crop(x: dict, side: int, rng: np.random.Generator | None) -> dict:
         a = np.asarray(a, np.float32)
         return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1) if a.ndim == 3 else a[None]))
 
-    return {"image": t(fit(x["image"])), "depth": t(depth), "depth_valid": t(valid), "seg": t(seg),
+    image = fit(x["image"])
+    if rng is not None and jitter > 0 and rng.random() < jitter:
+        image = jitter_colour(image, rng)
+    return {"image": t(image), "depth": t(depth), "depth_valid": t(valid), "seg": t(seg),
             "has_depth": torch.tensor(float(has_depth)), "has_seg": torch.tensor(float(x["seg"] is not None))}
 
 
@@ -218,7 +235,7 @@ class DepthMix(IterableDataset):
                 except (KeyError, ValueError) as exc:
                     what = f"missing member {exc}" if isinstance(exc, KeyError) else str(exc)
                     raise ValueError(f"{item.path}: {what}") from exc
-                yield {**fit_crop(x, self.cfg.data.crop, rng), "key": f"{item.path}:{item.other}"}
+                yield {**fit_crop(x, self.cfg.data.crop, rng, self.cfg.depth.jitter), "key": f"{item.path}:{item.other}"}
 
 
 def make_depth_loader(data_dir, cfg: Config, *, train: bool, seed: int, part: str = "fit",
