@@ -5,6 +5,7 @@ Fixtures that write files do so under pytest's tmp_path.
 """
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -200,9 +201,7 @@ def smoke_set(tmp_path_factory, smoke_recipe) -> Path:
 def _brute_coverage(aperture, radius, sub=64):
     """Independent reference kernel: point-in-shape tests on sub x sub points per pixel
     (area of the aperture of `radius` px inside each pixel, unnormalized)."""
-    from dofsynth.optics import support_radius
-
-    s = support_radius(radius)
+    s = 0 if radius < 0.5 else math.ceil(radius - 0.5)   # the pixels the shape touches
     n = 2 * s + 1
     t = (np.arange(n * sub) + 0.5) / sub - s - 0.5
     yy, xx = np.meshgrid(t, t, indexing="ij")
@@ -210,9 +209,26 @@ def _brute_coverage(aperture, radius, sub=64):
     return inside.reshape(n, sub, n, sub).sum(axis=(1, 3)) / sub**2
 
 
+def _brute_tent(aperture, radius, sub=96):
+    """Independent reference of the tent-weighted kernel: point-in-shape tests on a fine grid,
+    each point's area shared among the kernel pixels by the bilinear tent (unnormalized)."""
+    s = math.ceil(radius)
+    t = (np.arange(2 * s * sub) + 0.5) / sub - s          # points over [-s, s]
+    yy, xx = np.meshgrid(t, t, indexing="ij")
+    inside = aperture.contains(xx / radius, yy / radius).astype(np.float64) / sub**2
+    offs = np.arange(-s, s + 1)[:, None]
+    tent = np.maximum(0.0, 1.0 - np.abs(offs - t[None, :]))   # (2s+1, points)
+    return tent @ inside @ tent.T
+
+
 @pytest.fixture(scope="session")
 def brute_coverage():
     return _brute_coverage
+
+
+@pytest.fixture(scope="session")
+def brute_tent():
+    return _brute_tent
 
 
 @pytest.fixture

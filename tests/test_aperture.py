@@ -1,4 +1,5 @@
-"""Aperture kernels: area, symmetry, continuity in the radius, identity below half a pixel."""
+"""Aperture kernels: area, symmetry, continuity in the radius, identity at zero radius, the
+pixel-tent integral against a brute-force reference."""
 import json
 import math
 
@@ -39,7 +40,7 @@ def test_coverage_is_the_midpoint_rule_summed_directly(ap):
     from dofsynth.optics.kernel import X_SUBSAMPLES
 
     for r in [0.5, 0.7, 1.49, 2.3, 5.5, 12.25, 31.9, 64.0, 129.3]:
-        s = support_radius(r)
+        s = math.ceil(r - 0.5)   # coverage's array: the pixels the shape touches
         n = 2 * s + 1
         xmin, xmax = ap.x_extent(r)
         cells = np.clip(np.arange(n * X_SUBSAMPLES + 1) / X_SUBSAMPLES - s - 0.5, xmin, xmax)
@@ -80,12 +81,23 @@ def test_negative_radius_is_point_reflection(ap):
 
 
 @pytest.mark.parametrize("ap", [Disk(), Polygon(6, 5.0)])
-def test_normalized_and_identity_below_half_pixel(ap):
-    for r in (0.0, 0.2, -0.3, 0.4999):
-        np.testing.assert_array_equal(kernel(ap, r), np.ones((1, 1), np.float32))
-    for r in (0.6, 2.0, 3.0, 10.4):
+def test_normalized_identity_at_zero_and_growing_from_it(ap):
+    np.testing.assert_array_equal(kernel(ap, 0.0), np.ones((1, 1), np.float32))
+    centre = [embed(kernel(ap, r), 3)[1, 1] for r in (1e-4, 0.1, 0.2, 0.3, 0.45)]
+    assert centre[0] > 0.9999 and all(a > b for a, b in zip(centre, centre[1:]))  # blur starts at once
+    for r in (0.2, -0.3, 0.6, 2.0, 3.0, 10.4):
         k = kernel(ap, r)
         assert k.dtype == np.float32 and k.sum() == pytest.approx(1.0, abs=1e-5)
+        assert k.shape == (2 * support_radius(r) + 1,) * 2
+
+
+@pytest.mark.parametrize("ap,r", [(Disk(), 0.3), (Disk(), 1.7), (Disk(), 4.2), (Polygon(5, 17.0), 3.6)])
+def test_kernel_is_the_shape_integrated_against_the_pixel_tent(ap, r, brute_tent):
+    from dofsynth.optics.kernel import tent_weights
+
+    w = tent_weights(ap, r)
+    assert w.sum() == pytest.approx(ap.area(r), rel=5e-4)
+    np.testing.assert_allclose(w, brute_tent(ap, r), atol=3e-3 * max(r, 1.0))
 
 
 @pytest.mark.parametrize("ap", [Disk(), Polygon(5, 12.0)])

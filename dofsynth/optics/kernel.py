@@ -1,10 +1,14 @@
 """Anti-aliased blur kernels (point-spread functions) of the aperture shapes.
 
-A kernel of signed radius `c` (pixels) is the image of a point light on the sensor: the aperture
-shape scaled by `|c|`, each pixel weighted by the area of the shape inside it, normalized to sum
-1. For `c < 0` the shape is point-reflected (matters only for odd-bladed polygons). The kernel
-grows continuously with `|c|`; a radius below half a pixel is the identity (the whole shape lies
-inside the centre pixel). `Polygon`'s radius is its circumradius (centre-to-vertex distance).
+A kernel of signed radius `c` (pixels) is what a pixel's light becomes on the sensor: the
+aperture shape scaled by `|c|`, integrated against the bilinear tent of each kernel pixel,
+K[n] = integral over the shape of tent(n - x) dx, normalized to sum 1. The tent (the box of the
+source pixel convolved with the box of the sensor pixel) makes the kernel the exact blur of a
+scene that is constant over each pixel, seen by pixels that integrate over their area; it is
+also what warping by bilinear resampling averages to (dofsynth.render.exact). For `c < 0` the
+shape is point-reflected (matters only for odd-bladed polygons). The kernel grows continuously
+from the identity at `c = 0`. `Polygon`'s radius is its circumradius (centre-to-vertex distance).
+`coverage` is the plain area of the shape in each pixel (aperture sampling, area shares).
 """
 from __future__ import annotations
 
@@ -15,18 +19,27 @@ import numpy as np
 
 from dofsynth.optics.aperture import Aperture
 
-# Sub-samples per pixel column for the midpoint rule along x; y is integrated exactly.
+# Sub-samples per pixel column for the midpoint rule along x; y is integrated exactly. The
+# tent-weighted kernels need fewer: their integrand is continuous across pixel edges.
 X_SUBSAMPLES = 64
+TENT_X_SUBSAMPLES = 16
 
 
 def support_radius(radius: float) -> int:
-    """Half-size in pixels of the kernel array for a shape of circumradius |radius| (pixels)."""
+    """Half-size in pixels of the kernel array for a shape of circumradius |radius| (pixels):
+    the tent of pixel n reaches the shape when |n| < |radius| + 1."""
     r = abs(float(radius))
+    return 0 if r == 0.0 else int(math.ceil(r))
+
+
+def _cover_half(r: float) -> int:
+    """Half-size of the `coverage` array: the pixels the shape itself touches."""
     return 0 if r < 0.5 else int(math.ceil(r - 0.5))
 
 
 def coverage(aperture: Aperture, radius: float) -> np.ndarray:
-    """Area (pixels^2) of the shape of radius |radius| inside each pixel, float64 (2S+1, 2S+1).
+    """Area (pixels^2) of the shape of radius |radius| inside each pixel, float64 (2S+1, 2S+1),
+    S = ceil(|radius| - 0.5) (0 below half a pixel): the pixels the shape touches.
 
     Pixel (i, j) spans [j-S-0.5, j-S+0.5] x [i-S-0.5, i-S+0.5] around the shape's centre. Each
     column is integrated with the midpoint rule over X_SUBSAMPLES vertical chords, each chord
@@ -34,7 +47,7 @@ def coverage(aperture: Aperture, radius: float) -> np.ndarray:
     it sums to the shape's area (relative error below 1e-4 for radii above 1 px).
     """
     r = abs(float(radius))
-    s = support_radius(r)
+    s = _cover_half(r)
     n = 2 * s + 1
     if r == 0.0:
         out = np.zeros((n, n))
@@ -68,15 +81,40 @@ def coverage(aperture: Aperture, radius: float) -> np.ndarray:
     return np.diff(h, axis=1).T
 
 
+def _tent_integral(t: np.ndarray) -> np.ndarray:
+    """The integral of the tent max(0, 1 - |s|) from -inf to t."""
+    t = np.clip(t, -1.0, 1.0)
+    return np.where(t < 0.0, 0.5 * (t + 1.0) ** 2, 1.0 - 0.5 * (1.0 - t) ** 2)
+
+
+def tent_weights(aperture: Aperture, radius: float) -> np.ndarray:
+    """K[i, j] = integral over the shape of radius |radius| of tent(j - S - x) tent(i - S - y),
+    float64 (2S+1, 2S+1), S = support_radius, unnormalized (it sums to the shape's area). Along
+    y each chord is integrated exactly (the tent's antiderivative); along x by the midpoint rule
+    over TENT_X_SUBSAMPLES sub-columns per pixel of the shape's x-extent (at least 256), so it
+    is continuous in r."""
+    r = abs(float(radius))
+    s = support_radius(r)
+    if r == 0.0:
+        return np.ones((1, 1))
+    xmin, xmax = aperture.x_extent(r)
+    m = max(256, int(math.ceil((xmax - xmin) * TENT_X_SUBSAMPLES)))  # at least 256: small shapes too
+    edges = np.linspace(xmin, xmax, m + 1)
+    x, width = 0.5 * (edges[1:] + edges[:-1]), np.diff(edges)
+    lo, hi = aperture.chord(x, r)
+    hi = np.maximum(hi, lo)
+    offs = np.arange(-s, s + 1, dtype=np.float64)[:, None]
+    along_y = _tent_integral(offs - lo[None, :]) - _tent_integral(offs - hi[None, :])  # (2S+1, m)
+    along_x = np.maximum(0.0, 1.0 - np.abs(offs - x[None, :])) * width[None, :]        # (2S+1, m)
+    return along_y @ along_x.T
+
+
 @lru_cache(maxsize=512)
 def _kernel_cached(aperture: Aperture, signed_radius: float) -> np.ndarray:
-    if abs(signed_radius) < 0.5:
-        k = np.ones((1, 1), dtype=np.float32)
-    else:
-        cov = coverage(aperture, signed_radius)
-        k = (cov / cov.sum()).astype(np.float32)
-        if signed_radius < 0:
-            k = np.ascontiguousarray(k[::-1, ::-1])
+    w = tent_weights(aperture, signed_radius)
+    k = (w / w.sum()).astype(np.float32)
+    if signed_radius < 0:
+        k = np.ascontiguousarray(k[::-1, ::-1])
     k.setflags(write=False)
     return k
 
