@@ -45,7 +45,8 @@ SCHEMA_VERSION = 3  # 2: assets' colour; objects' anchored, visible and rejected
 RENDERERS = {"layered": "layered-v4", "subaperture": "subaperture-v2", "exact": "exact-v1"}
 RENDERER_ID = RENDERERS["layered"]  # v2: highlights blurred as boosted light and mapped back (dofsynth.highlight);
 #                             v3: cutouts edge-replicated past the frame edges they reach;
-#                             v4 (subaperture v2): kernels integrate the shape against the pixel tent
+#                             v4 (subaperture v2): kernels integrate the shape against the pixel tent,
+#                             and a ramp's scatter carries the Jacobian of its parallax
 # zlib settings of the PNG members, chosen by measurement at 1024 px (docs/rendering.md):
 # - images (aif, dof): level 1, one fixed Paeth row filter, Huffman-only coding. libpng no longer
 #   tries all five filters per row, and Paeth residuals of photos have few long matches, so

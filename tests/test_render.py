@@ -1,5 +1,6 @@
 """The layered renderer: analytic convolution, identity in focus, continuity, varying disparity,
 energy, the exact mode, and input validation."""
+import cv2
 import numpy as np
 import pytest
 
@@ -503,3 +504,19 @@ def test_cat_eye_subaperture_renders_approach_the_exact_mode_with_the_same_vigne
     assert mse(renders[6], vignetted) < mse(renders[6], plain) / 4
     in_focus = render_planes(planes, 0.0, 10.0, Disk(), method="subaperture", cells=6, cat_eye=0.5)
     assert np.allclose(in_focus, planes[0].rgb, atol=1e-6)   # normalized: what is in focus is untouched
+
+
+@pytest.mark.parametrize("ap", [Disk(), Polygon(5, 10.0)])
+def test_a_slanted_plane_matches_the_thin_lens_gather(ap):
+    """A ramp alone has no occlusion: the layered method (scatter with the Jacobian weight of
+    each pixel's parallax) must agree with the exact mode (each aperture point gathers the
+    plane warped by its own parallax). Measured 52.7-72.6 dB; a plain normalized scatter gave
+    44-50 dB on these scenes."""
+    n = 48
+    bg = cv2.resize(rng(3).random((n // 4, n // 4, 3)).astype(np.float32), (n, n), interpolation=cv2.INTER_NEAREST)
+    for line in (np.linspace(0.0, 0.45, n, dtype=np.float32)[:, None], np.linspace(0.45, 0.0, n, dtype=np.float32)[None, :]):
+        planes = [opaque(bg, np.broadcast_to(line, (n, n)))]
+        for focus, floor in ((0.0, 52.0), (0.5, 54.0), (1.0, 70.0)):
+            exact = render_planes(planes, focus, 16.0, ap, method="exact")
+            mse = float(np.mean((render_planes(planes, focus, 16.0, ap) - exact) ** 2))
+            assert 10 * np.log10(1.0 / mse) > floor, (line.shape, focus)

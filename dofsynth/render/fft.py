@@ -59,9 +59,10 @@ class Convolver:
     time) taken axis by axis: the real transform along rows runs only over the input rows that
     hold data (once, even where bands overlap) and its inverse only over the rows kept."""
 
-    def __init__(self, signed_radius: float, aperture: Aperture, h: int, w: int, tiling: Tiling = TILING):
+    def __init__(self, signed_radius: float, aperture: Aperture, h: int, w: int, tiling: Tiling = TILING,
+                 k: np.ndarray | None = None):
         self.s = s = support_radius(signed_radius)
-        self.k = kernel(aperture, signed_radius)
+        self.k = kernel(aperture, signed_radius) if k is None else k  # k: another kernel of that size
         self.h, self.w = h, w
         self.direct = s <= SMALL_KERNEL
         self.ty, self.tx = h, w

@@ -13,10 +13,11 @@ def is_one(alpha: np.ndarray) -> bool:
 
 
 def compact(m: np.ndarray) -> np.ndarray:
-    """The smallest array that broadcasts back to `m`: a broadcast row or column stays one."""
-    if m.strides[0] == 0:
+    """The smallest array that broadcasts back to `m`: a broadcast row or column stays one, and
+    so does a map whose rows (or columns) are all equal, however it is stored."""
+    if m.strides[0] == 0 or (m.shape[0] > 1 and np.array_equal(m, np.broadcast_to(m[:1], m.shape))):
         m = m[:1]
-    if m.strides[1] == 0:
+    if m.strides[1] == 0 or (m.shape[1] > 1 and np.array_equal(m, np.broadcast_to(m[:, :1], m.shape))):
         m = m[:, :1]
     return m
 

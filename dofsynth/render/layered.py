@@ -14,8 +14,11 @@ is split into levels `c_k` anchored at the smallest CoC and at most
 `max(level_step, level_ratio * |c_k|)` pixels apart; each pixel is shared between its two
 neighbouring levels with linear weights `w_k`, and `out = sum_k K_k * (w_k P) / sum_k K_k * w_k`
 (the denominator is the same scatter applied to ones; a 1-D convolution when the map is a
-broadcast row or column). A constant map is one level, i.e. the exact constant result. The
-only approximation is the linear interpolation of kernels between levels (docs/rendering.md).
+broadcast row or column). A constant map is one level, i.e. the exact constant result. For a
+ramp (a broadcast row or column) each pixel's disc is also weighted by the Jacobian of its
+parallax, 1 + p . grad(c) for the aperture point p it reaches (`_moment_kernel`): what a thin lens
+gathers from a slanted plane, which a plain scatter lacks. The approximations are the linear
+interpolation of kernels between levels and the first-order Jacobian (docs/rendering.md).
 No torch here: this module is on the data-generation path.
 """
 from __future__ import annotations
@@ -111,6 +114,17 @@ def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0)
     return levels, k0, f
 
 
+MAX_SLOPE = 0.5  # |grad c| (px per px) the Jacobian weight uses at most: it stays >= 1/2
+
+
+def _moment_kernel(k: np.ndarray, ck: float, along: int) -> np.ndarray:
+    """K * u / c_k, u the offset along axis `along` (0 rows, 1 columns): the kernel weighted
+    by the aperture coordinate p = u / c of each displacement."""
+    s = k.shape[0] // 2
+    u = (np.arange(-s, s + 1, dtype=np.float32) / np.float32(ck))
+    return np.ascontiguousarray(k * (u[:, None] if along == 0 else u[None, :]))
+
+
 def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, backmost, level_step,
                        level_ratio) -> None:
     """Normalized level scatter of a plane with a disparity map, composited "over" `acc`.
@@ -137,6 +151,13 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
     # A map constant along x (or y) has weights constant along it: the weight channel's blur
     # is then a 1-D convolution with the kernel's projection (no FFT), kept as a column/row.
     along = 0 if c_e.shape[1] == 1 else (1 if c_e.shape[0] == 1 else None)
+    # The slope of a ramp's CoC (px per px), for the Jacobian weight; None for 2-D maps.
+    slope = None
+    if along is not None and c_e.size > 1:
+        line = c_e[:, 0] if along == 0 else c_e[0]
+        g = np.clip(np.gradient(line.astype(np.float64)), -MAX_SLOPE, MAX_SLOPE).astype(np.float32)
+        slope = g[:, None] if along == 0 else g[None, :]
+        slope = slope if np.any(slope) else None
     # Accumulators over O: premultiplied colour (straight into acc for the backmost plane:
     # acc is still black), alpha (not for an opaque backmost plane) and weight.
     oh, ow = oy1 - oy0, ox1 - ox0
@@ -178,14 +199,25 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         else:
             conv.add_into(copy_tile(wsub), w_acc, ty0, tx0)
         a_sub = None if one else grab(alpha, fy0, fy1, fx0, fx1, True)
-        wa = np.broadcast_to(wsub if one else wsub * a_sub, (y1 - y0, x1 - x0))
-        if a_acc is not None:
-            conv.add_into(copy_tile(wa), a_acc, ty0, tx0)
-        for ch in range(3):  # each channel of the strip read straight into the FFT's buffer
-            def tile(a, b, c, d, out, ch=ch):
-                grab(rgb[:, :, ch], fy0 + a, fy0 + b, fx0 + c, fx0 + d, True, out)
-                out *= wa[a:b, c:d]
-            conv.add_into(tile, col[ch], ty0, tx0)
+        passes = [(conv, wsub)]
+        if slope is not None and ck != 0.0:  # the Jacobian's first-order term: K u / c times the slope
+            mk = _moment_kernel(conv.k, float(ck), along)
+            mconv = Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=mk)
+            wg = wsub * slope[sub]
+            if along == 0:
+                add_clipped(w_acc, ty0, 0, np.convolve(wg[:, 0], mk.sum(axis=1))[:, None])
+            else:
+                add_clipped(w_acc, 0, tx0, np.convolve(wg[0], mk.sum(axis=0))[None, :])
+            passes.append((mconv, wg))
+        for cv, wk in passes:
+            wa = np.broadcast_to(wk if one else wk * a_sub, (y1 - y0, x1 - x0))
+            if a_acc is not None:
+                cv.add_into(copy_tile(wa), a_acc, ty0, tx0)
+            for ch in range(3):  # each channel of the strip read straight into the FFT's buffer
+                def tile(a, b, c, d, out, ch=ch, wa=wa):
+                    grab(rgb[:, :, ch], fy0 + a, fy0 + b, fx0 + c, fx0 + d, True, out)
+                    out *= wa[a:b, c:d]
+                cv.add_into(tile, col[ch], ty0, tx0)
     np.maximum(w_acc, 1e-12, out=w_acc)
     inv = np.reciprocal(w_acc, out=w_acc)
     if backmost:
