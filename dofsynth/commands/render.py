@@ -122,7 +122,8 @@ def _read_inputs(args, depth_run):
                          f"{args.image} is {rgb.shape[1]}x{rgb.shape[0]}: they must have the same size")
     if not np.all(np.isfinite(disparity)) or disparity.min() < 0 or disparity.max() > 1:
         raise ValueError(f"--depth {args.depth}: disparity must be finite and in [0, 1], "
-                         f"got [{np.nanmin(disparity)}, {np.nanmax(disparity)}]")
+                         f"got [{np.nanmin(disparity)}, {np.nanmax(disparity)}] (another network's raw "
+                         "output: --depth-kind disparity or depth)")
     if not np.all(np.isfinite(rgb)) or rgb.min() < 0:
         raise ValueError(f"IMAGE {args.image}: colour must be finite and >= 0")
     return rgb, disparity
