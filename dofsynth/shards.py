@@ -197,6 +197,12 @@ def _check_end(path: Path, offset: int) -> None:
         raise ShardError(f"{path}: truncated tar (no end-of-archive marker after the last member)")
 
 
+def _key_member(name: str) -> tuple[str, str]:
+    """(sample key, member suffix) of a tar member name: "dir/KEY.aif.png" -> ("KEY", "aif.png")."""
+    key, _, member = name.rsplit("/", 1)[-1].partition(".")
+    return key, member
+
+
 def iter_members(path: str | os.PathLike, keys=None, data: bool = True,
                  suffix: str | None = None) -> Iterator[tuple[str, str, bytes | None]]:
     """(key, suffix, bytes) of every regular member of a shard in file order; with `keys`,
@@ -209,7 +215,7 @@ def iter_members(path: str | os.PathLike, keys=None, data: bool = True,
             for info in tar:
                 if not info.isfile():
                     continue
-                key, _, member = info.name.rsplit("/", 1)[-1].partition(".")
+                key, member = _key_member(info.name)
                 if (keys is not None and key not in keys) or (suffix is not None and member != suffix):
                     continue
                 blob = None
@@ -255,7 +261,7 @@ def member_index(path: str | os.PathLike) -> dict[str, dict[str, tuple[int, int]
         with tarfile.open(path, "r:") as tar:
             for info in tar:
                 if info.isfile():
-                    key, _, member = info.name.rsplit("/", 1)[-1].partition(".")
+                    key, member = _key_member(info.name)
                     index.setdefault(key, {})[member] = (info.offset_data, info.size)
     except (tarfile.TarError, EOFError, OSError) as exc:
         raise ShardError(f"{path}: unreadable tar ({exc})") from exc

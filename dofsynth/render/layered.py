@@ -192,24 +192,18 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         # frame coordinates of the strip, and where its blur lands in O
         fy0, fy1, fx0, fx1 = y0 + ey0, y1 + ey0, x0 + ex0, x1 + ex0
         ty0, tx0 = fy0 - s - oy0, fx0 - s - ox0
-        if along == 0:
-            add_clipped(w_acc, ty0, 0, np.convolve(wsub[:, 0], conv.k.sum(axis=1))[:, None])
-        elif along == 1:
-            add_clipped(w_acc, 0, tx0, np.convolve(wsub[0], conv.k.sum(axis=0))[None, :])
-        else:
-            conv.add_into(copy_tile(wsub), w_acc, ty0, tx0)
         a_sub = None if one else grab(alpha, fy0, fy1, fx0, fx1, True)
         passes = [(conv, wsub)]
         if slope is not None and ck != 0.0:  # the Jacobian's first-order term: K u / c times the slope
             mk = _moment_kernel(conv.k, float(ck), along)
-            mconv = Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=mk)
-            wg = wsub * slope[sub]
+            passes.append((Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=mk), wsub * slope[sub]))
+        for cv, wk in passes:  # weight, alpha and colour of each pass
             if along == 0:
-                add_clipped(w_acc, ty0, 0, np.convolve(wg[:, 0], mk.sum(axis=1))[:, None])
+                add_clipped(w_acc, ty0, 0, np.convolve(wk[:, 0], cv.k.sum(axis=1))[:, None])
+            elif along == 1:
+                add_clipped(w_acc, 0, tx0, np.convolve(wk[0], cv.k.sum(axis=0))[None, :])
             else:
-                add_clipped(w_acc, 0, tx0, np.convolve(wg[0], mk.sum(axis=0))[None, :])
-            passes.append((mconv, wg))
-        for cv, wk in passes:
+                cv.add_into(copy_tile(wk), w_acc, ty0, tx0)
             wa = np.broadcast_to(wk if one else wk * a_sub, (y1 - y0, x1 - x0))
             if a_acc is not None:
                 cv.add_into(copy_tile(wa), a_acc, ty0, tx0)

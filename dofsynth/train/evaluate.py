@@ -34,7 +34,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from dofsynth.color import linear_to_srgb, srgb_to_linear
 from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
 from dofsynth.highlight import boost, unboost
-from dofsynth.io import decode_image
+from dofsynth.io import decode_image, normalize_disparity
 from dofsynth.record import decode_depth
 from dofsynth.optics.aperture import aperture_from_dict
 from dofsynth.render import Plane, render_planes
@@ -183,7 +183,7 @@ def evaluate_depth(model, cfg, run_dir: str | Path, data_dir: str | Path, *, spl
             continue  # a flat scene has no depth order to predict
         image = decode_image(raw["aif.png"], f"{key}.aif.png")[:, :, :3]
         pred = predict_disparity(model, image, cfg.data.crop)
-        items.append({"key": key, **depth_errors(pred, (gt - gt.min()) / np.ptp(gt))})
+        items.append({"key": key, **depth_errors(pred, normalize_disparity(gt, "disparity")[0])})
     if not items:
         raise ValueError(f"{data_dir}/{split}: no samples with a depth range to evaluate")
     mean = {k: float(np.mean([r[k] for r in items])) for k in ("mae", "mae_spline", "mae_constant")}

@@ -84,15 +84,19 @@ def render_photo(run_dir: str | Path, image_linear: np.ndarray, disparity: np.nd
     return render_with(model, cfg, image, disp, focus, aperture)
 
 
+def default_device() -> str:
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 def run_task(run_dir: str | Path) -> str:
-    """The [train] task of a run: "render" (the DoF networks) or "depth"."""
-    return cached_model(run_dir, "cpu")[1].train.task
+    """The [train] task of a run: "render" (the DoF networks) or "depth". Loads the model where
+    `run_of` will use it, so the cache serves both."""
+    return cached_model(run_dir, default_device())[1].train.task
 
 
 def run_of(run_dir: str | Path, task: str, device: str | None = None):
     """(model, config) of a run of `task`; a run of the other task raises ValueError."""
-    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
-    model, cfg = cached_model(run_dir, device)
+    model, cfg = cached_model(run_dir, device or default_device())
     if cfg.train.task != task:
         what = {"render": "the DoF networks", "depth": "the depth network"}
         raise ValueError(f"{run_dir}: a run of {what[cfg.train.task]}, not of {what[task]}")
