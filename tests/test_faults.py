@@ -325,9 +325,11 @@ def test_a_training_run_killed_before_its_first_log_row_resumes(tmp_path):
     assert rows[0].startswith("step,") and rows[-1].startswith("6,"), rows
 
 
-def test_ctrl_c_while_workers_start_prints_one_line(recipe_path, tmp_path):
+@pytest.mark.parametrize("workers", [2, 6])
+def test_ctrl_c_while_workers_start_prints_one_line(recipe_path, tmp_path, workers):
     """A terminal's Ctrl-C reaches the whole process group: the workers, still starting, must
-    not print a traceback each; the run stops with one line naming --resume."""
+    not print a traceback each; the run stops with one line naming --resume. With more workers
+    than cores the key comes while the parent is still spawning the later ones."""
     import os
 
     long = tmp_path / "long.toml"   # enough samples that the run cannot end before the signal
@@ -335,8 +337,8 @@ def test_ctrl_c_while_workers_start_prints_one_line(recipe_path, tmp_path):
                                                     "samples = { train = 60, test = 3 }"))
     out = tmp_path / "out"
     proc = subprocess.Popen([sys.executable, "-m", "dofsynth", "generate", str(long), "--out", str(out),
-                             "--quiet", "--workers", "2"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True,
+                             "--quiet", "--workers", str(workers)], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
                             # a test run started in the background inherits SIGINT ignored; a terminal's does not
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert _until(lambda: _children(proc.pid), 60, 0.01), "no worker started"

@@ -13,8 +13,11 @@ Fault behaviour, by design:
   thread watching the parent's pid; either way they also hold a shared flock on
   `<run lock>.workers`, which a later run of the same OUT checks (dofsynth.locks), so the
   promise "no two runs write into OUT at once" holds even against a straggler.
-- Workers ignore SIGINT (inherited from the parent while they start): Ctrl-C reaches the
-  parent alone, which stops the run and prints one line.
+- Workers ignore SIGINT: they start with it blocked (the parent blocks it while it spawns
+  them, and a signal mask survives exec), so a Ctrl-C while they import stays pending, and
+  they discard it by ignoring SIGINT before unblocking it. The parent holds its own Ctrl-C
+  back until the workers are started, then stops the run and prints one line, however
+  early the key was pressed.
 """
 from __future__ import annotations
 
@@ -29,6 +32,7 @@ import threading
 import time
 import traceback
 from contextlib import contextmanager
+from multiprocessing import resource_tracker
 from multiprocessing.connection import wait
 from pathlib import Path
 
@@ -72,6 +76,8 @@ def _hold_shared(lock_path: str | None):
 
 
 def _worker_main(conn, recipe, out: str, library_path: str, parent_pid: int, lock_path: str | None) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # discards a Ctrl-C pending since the spawn
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     _die_with(parent_pid)
     lock_fd = _hold_shared(lock_path)  # noqa: F841 (kept open for the process's life)
     setup_process()
@@ -93,16 +99,25 @@ def _worker_main(conn, recipe, out: str, library_path: str, parent_pid: int, loc
 
 
 @contextmanager
-def _sigint_ignored():
-    """Children started inside inherit an ignored SIGINT (Python keeps an ignored one)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+def _sigint_deferred():
+    """Spawn workers inside: they begin with SIGINT blocked (this thread's mask survives fork
+    and exec), and a Ctrl-C meanwhile is held back and raised here on exit, so it can neither
+    interrupt a half-started worker nor be lost. The mask alone is not enough in the parent:
+    the kernel hands the signal to any thread not blocking it, so the handler defers it too.
+    The resource tracker is started first, as its own start unblocks SIGINT."""
+    resource_tracker.ensure_running()
+    caught = []
+    main = threading.current_thread() is threading.main_thread()
+    old_handler = signal.signal(signal.SIGINT, lambda *_: caught.append(1)) if main else None
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, old)
+        if main:
+            signal.signal(signal.SIGINT, old_handler)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+        if caught:
+            signal.raise_signal(signal.SIGINT)
 
 
 def _how_it_ended(p) -> str:
@@ -127,7 +142,7 @@ def run_pool(workers: int, recipe, out, tasks: list[ShardTask], limits: dict, on
         lib_path.write_bytes(pickle.dumps(library_for(recipe)))
         procs, conns = [], []
         try:
-            with _sigint_ignored():
+            with _sigint_deferred():
                 for _ in range(n):
                     parent_end, child_end = ctx.Pipe()
                     p = ctx.Process(target=_worker_main, daemon=True, name="dofsynth-worker",
