@@ -42,11 +42,14 @@ from dofsynth.io import decode_exr, decode_image, encode_exr, encode_png_bgr, sw
 
 SCHEMA_VERSION = 3  # 2: assets' colour; objects' anchored, visible and rejected;
 #                    3: depth.exr channel "disparity" (was "Z") with attributes; sRGB chunks
-RENDERERS = {"layered": "layered-v4", "subaperture": "subaperture-v2", "exact": "exact-v1"}
+RENDERERS = {"layered": "layered-v5", "subaperture": "subaperture-v3", "exact": "exact-v1"}
 RENDERER_ID = RENDERERS["layered"]  # v2: highlights blurred as boosted light and mapped back (dofsynth.highlight);
 #                             v3: cutouts edge-replicated past the frame edges they reach;
 #                             v4 (subaperture v2): kernels integrate the shape against the pixel tent,
-#                             and a ramp's scatter carries the Jacobian of its parallax
+#                             and a ramp's scatter carries the Jacobian of its parallax;
+#                             v5 (subaperture v3): the Jacobian weighs each kernel pixel by the mean
+#                             aperture point landing there (kernel_moments), polygon kernels are
+#                             convolved over their non-zero box; cells composite to second order
 # zlib settings of the PNG members, chosen by measurement at 1024 px (docs/rendering.md):
 # - images (aif, dof): level 1, one fixed Paeth row filter, Huffman-only coding. libpng no longer
 #   tries all five filters per row, and Paeth residuals of photos have few long matches, so

@@ -100,6 +100,36 @@ def test_kernel_is_the_shape_integrated_against_the_pixel_tent(ap, r, brute_tent
     np.testing.assert_allclose(w, brute_tent(ap, r), atol=3e-3 * max(r, 1.0))
 
 
+@pytest.mark.parametrize("ap,r", [(Disk(), 0.4), (Disk(), 3.3), (Polygon(5, 17.0), -4.6)])
+def test_kernel_moments_are_the_aperture_coordinate_under_the_pixel_tent(ap, r):
+    """kernel_moments: each pixel carries the mean aperture point p = (x, y) / |r| of the light
+    landing there, tent-weighted like the kernel: against point samples of the shape, each
+    point's p shared among pixels by the tent. They sum to the centroid (0 for these shapes,
+    the cell's for a part of a disc)."""
+    from dofsynth.optics.kernel import kernel_moments
+    from dofsynth.render.subaperture import Cell
+
+    for shape in (ap, Cell(ap, 0.0, 1.0, -1.0, -0.2)):
+        s, a = math.ceil(abs(r)), abs(r)
+        sub = 96 if a > 2 else 480   # points per pixel: enough across a small shape
+        t = (np.arange(2 * s * sub) + 0.5) / sub - s
+        yy, xx = np.meshgrid(t, t, indexing="ij")
+        inside = shape.contains(xx / a, yy / a).astype(np.float64)
+        offs = np.arange(-s, s + 1)[:, None]
+        tent = np.maximum(0.0, 1.0 - np.abs(offs - t[None, :]))
+        total = (tent @ inside @ tent.T).sum()
+        want_x, want_y = tent @ (inside * xx / a) @ tent.T / total, tent @ (inside * yy / a) @ tent.T / total
+        if r < 0:  # the kernel's point reflection: the same aperture points on mirrored pixels
+            want_x, want_y = want_x[::-1, ::-1], want_y[::-1, ::-1]
+        mx, my = kernel_moments(shape, r)
+        assert mx.shape == kernel(shape, r).shape and mx.dtype == np.float32
+        np.testing.assert_allclose(mx, want_x, atol=2e-3)
+        np.testing.assert_allclose(my, want_y, atol=2e-3)
+        cx, cy = (float(np.sum(inside * v / a) / inside.sum()) for v in (xx, yy))
+        assert float(mx.sum()) == pytest.approx(cx, abs=2e-3) and float(my.sum()) == pytest.approx(cy, abs=2e-3)
+    np.testing.assert_array_equal(kernel_moments(ap, 0.0)[0].shape, (1, 1))
+
+
 @pytest.mark.parametrize("ap", [Disk(), Polygon(5, 12.0)])
 def test_kernel_continuous_in_radius(ap):
     """No jump at integer or half-integer radii: tiny radius steps make tiny kernel changes."""

@@ -329,18 +329,24 @@ def test_transparent_plane_changes_nothing():
 
 
 @pytest.mark.parametrize("tiling", [None, Tiling(above=30, rows=30, wide=40)])
-@pytest.mark.parametrize("radius", [3.2, -9.6, 14.7])  # cv2 direct, FFT, FFT with S past the band
-def test_the_convolver_equals_a_float64_direct_convolution_tiled_or_not(tiling, radius):
+@pytest.mark.parametrize("radius,ap", [(3.2, Disk()), (-9.6, Disk()), (14.7, Disk()),  # direct, FFT, S past the band
+                                       (9.6, Polygon(5, 0.0)), (-13.3, "cell")])      # kernels with empty rows
+def test_the_convolver_equals_a_float64_direct_convolution_tiled_or_not(tiling, radius, ap):
     """Convolver.add_into adds the full convolution of its input at any offset of a
-    destination, clipped to it, whatever the tiling (overlap-save bands and column tiles)."""
+    destination, clipped to it, whatever the tiling (overlap-save bands and column tiles) and
+    however little of its (2S+1)^2 array the kernel fills (it convolves the non-zero box)."""
     from scipy.signal import convolve2d
 
+    from dofsynth.render.subaperture import Cell
+
+    ap = Cell(Disk(), -1.0, -0.3, 0.2, 1.0) if ap == "cell" else ap
     g = rng(31)
     h, w = 67, 83
     x = g.random((h, w), dtype=np.float32)
-    conv = Convolver(radius, Disk(), h, w) if tiling is None else Convolver(radius, Disk(), h, w, tiling)
+    conv = Convolver(radius, ap, h, w) if tiling is None else Convolver(radius, ap, h, w, tiling)
+    assert (conv.used.shape != conv.k.shape) == (not isinstance(ap, Disk))
     s = support_radius(radius)
-    full = convolve2d(x.astype(np.float64), kernel(Disk(), radius).astype(np.float64), mode="full")
+    full = convolve2d(x.astype(np.float64), kernel(ap, radius).astype(np.float64), mode="full")
     for shape, oy, ox in [((h + 2 * s, w + 2 * s), 0, 0), ((50, 60), -7, 11), ((120, 40), 30, -25),
                           ((20, 20), -200, 0), ((h + 2 * s, w + 2 * s), -30, 0)]:
         base = g.random(shape, dtype=np.float32)
@@ -351,6 +357,25 @@ def test_the_convolver_equals_a_float64_direct_convolution_tiled_or_not(tiling, 
         if ys.stop > ys.start and xs.stop > xs.start:
             want[ys, xs] += full[ys.start - oy : ys.stop - oy, xs.start - ox : xs.stop - ox]
         np.testing.assert_allclose(dst, want, atol=2e-6)
+
+
+def test_convolve_stack_equals_float64_direct_convolutions_full_and_valid():
+    """fft.convolve_stack: each (kernel, channel) pair's full convolution, or only its valid
+    part (every tap inside the input), by one batched FFT."""
+    from scipy.signal import convolve2d
+
+    from dofsynth.render.fft import convolve_stack
+
+    g = rng(5)
+    x = g.random((3, 37, 52), dtype=np.float32)
+    ks = g.random((2, 9, 14), dtype=np.float32)
+    pairs = [(0, 0), (1, 2), (0, 2), (1, 1)]
+    for valid in (False, True):
+        got = convolve_stack(x, ks, pairs, valid=valid)
+        want = [convolve2d(x[c].astype(np.float64), ks[k].astype(np.float64), mode="valid" if valid else "full")
+                for k, c in pairs]
+        assert got.dtype == np.float32 and got.shape == (4,) + want[0].shape
+        np.testing.assert_allclose(got, np.stack(want), atol=2e-5)
 
 
 def test_convolve_equals_a_zero_padded_direct_convolution():
@@ -473,6 +498,55 @@ def test_subaperture_renders_converge_to_the_exact_method(focus):
     assert err[0] > err[1] > err[2] and err[2] < err[0] / 10, err   # over 10 dB closer with 4 x 4 cells
 
 
+@pytest.mark.parametrize("ap", [Disk(), Polygon(6, 10.0)])
+def test_subaperture_cells_are_exact_over_a_background_linear_in_the_aperture(ap):
+    """The second-order composite: what a cell sees of the background is a R - Cov(a, R), the
+    covariance from the alpha's moments over the cell. Over a linear background it is exact
+    whatever the cell size: a hard-edged blurred foreground in front of a blurred colour ramp
+    matches the exact mode with 2 x 2 cells (inside the frame, away from its replicated
+    edges), where the layered method misses what the edge reveals by 1e-2."""
+    h = w = 64
+    bg = np.empty((h, w, 3), np.float32)
+    bg[..., 0] = np.linspace(0.1, 0.9, w, dtype=np.float32)[None, :]
+    bg[..., 1] = np.linspace(0.9, 0.2, h, dtype=np.float32)[:, None]
+    bg[..., 2] = 0.5
+    a = np.zeros((h, w), np.float32)
+    a[:, 30:] = 1.0
+    a[40:, :] = 1.0
+    planes = [opaque(bg, 0.3), Plane(np.zeros((h, w, 3), np.float32) + np.float32([0.8, 0.2, 0.1]), a, 0.8)]
+    inner = (slice(None), slice(16, 48), slice(16, 48))
+    for focus in (0.0, 1.0):
+        exact = render_planes(planes, focus, 12.0, ap, method="exact", planar=True)
+        err = lambda img: float(np.abs(img - exact)[inner].max())  # noqa: E731
+        assert err(render_planes(planes, focus, 12.0, ap, planar=True)) > 5e-3
+        for n in (2, 3):
+            assert err(render_planes(planes, focus, 12.0, ap, method="subaperture", cells=n, planar=True)) < 4e-4
+
+
+def test_subaperture_cutouts_too_large_for_one_stacked_fft_take_the_tiled_convolver(monkeypatch):
+    """Beyond fft.STACK_FFT_MAX padded pixels a cutout's channels go through the per-channel
+    Convolver: the same render to float32 rounding."""
+    import dofsynth.render.fft as fft
+
+    planes = _occlusion_scene()
+    want = render_planes(planes, 0.1, 16.0, Polygon(5, 0.0), method="subaperture", cells=2)
+    monkeypatch.setattr(fft, "STACK_FFT_MAX", 16)
+    got = render_planes(planes, 0.1, 16.0, Polygon(5, 0.0), method="subaperture", cells=2)
+    np.testing.assert_allclose(got, want, atol=2e-5)
+    assert not np.array_equal(got, want)   # the other path did run
+
+
+def test_three_subaperture_cells_per_side_are_within_50_db_of_the_exact_mode():
+    """The issue's bar at max CoC 20 px on soft discs over a textured background: 3 x 3 cells
+    reach 50 dB of the exact mode (measured 55.6-65.3 dB) where the layered method is at
+    45-48 dB."""
+    planes = _occlusion_scene()
+    for focus in (0.1, 0.7, 1.0):
+        exact = render_planes(planes, focus, 20.0, Disk(), method="exact")
+        mse = float(np.mean((render_planes(planes, focus, 20.0, Disk(), method="subaperture", cells=3) - exact) ** 2))
+        assert 10 * np.log10(1.0 / mse) > 50.0
+
+
 def _points_scene(h=64, w=64):
     img = np.zeros((h, w, 3), np.float32) + 0.05
     for y, x in [(8, 8), (8, 56), (32, 32), (56, 12), (50, 50)]:
@@ -510,13 +584,14 @@ def test_cat_eye_subaperture_renders_approach_the_exact_mode_with_the_same_vigne
 def test_a_slanted_plane_matches_the_thin_lens_gather(ap):
     """A ramp alone has no occlusion: the layered method (scatter with the Jacobian weight of
     each pixel's parallax) must agree with the exact mode (each aperture point gathers the
-    plane warped by its own parallax). Measured 52.7-72.6 dB; a plain normalized scatter gave
-    44-50 dB on these scenes."""
+    plane warped by its own parallax). Measured 55.3-72.7 dB with each kernel pixel weighted by
+    the mean aperture point landing there (kernel_moments); 52.7-72.6 dB with the plain offset
+    u / c in its place, and 44-50 dB with no Jacobian weight, on these scenes."""
     n = 48
     bg = cv2.resize(rng(3).random((n // 4, n // 4, 3)).astype(np.float32), (n, n), interpolation=cv2.INTER_NEAREST)
     for line in (np.linspace(0.0, 0.45, n, dtype=np.float32)[:, None], np.linspace(0.45, 0.0, n, dtype=np.float32)[None, :]):
         planes = [opaque(bg, np.broadcast_to(line, (n, n)))]
-        for focus, floor in ((0.0, 52.0), (0.5, 54.0), (1.0, 70.0)):
+        for focus, floor in ((0.0, 54.5), (0.5, 57.0), (1.0, 70.0)):
             exact = render_planes(planes, focus, 16.0, ap, method="exact")
             mse = float(np.mean((render_planes(planes, focus, 16.0, ap) - exact) ** 2))
             assert 10 * np.log10(1.0 / mse) > floor, (line.shape, focus)

@@ -82,9 +82,40 @@ def coverage(aperture: Aperture, radius: float) -> np.ndarray:
 
 
 def _tent_integral(t: np.ndarray) -> np.ndarray:
-    """The integral of the tent max(0, 1 - |s|) from -inf to t."""
+    """The integral of the tent max(0, 1 - |s|) from -inf to t: 0.5 (t + 1)^2 below 0 and
+    1 - 0.5 (1 - t)^2 above, i.e. 0.5 + t - 0.5 t |t| (t clipped to [-1, 1])."""
     t = np.clip(t, -1.0, 1.0)
-    return np.where(t < 0.0, 0.5 * (t + 1.0) ** 2, 1.0 - 0.5 * (1.0 - t) ** 2)
+    return 0.5 + t - 0.5 * t * np.abs(t)
+
+
+def _tent_moment_integral(t: np.ndarray) -> np.ndarray:
+    """The integral of s * max(0, 1 - |s|) from -inf to t (0 again beyond 1: the tent is even)."""
+    t = np.clip(t, -1.0, 1.0)
+    return t * t * (0.5 - np.abs(t) / 3.0) - 1.0 / 6.0  # t^2/2 -+ t^3/3 - 1/6 on either side of 0
+
+
+@lru_cache(maxsize=2)
+def _tent_terms(aperture: Aperture, r: float):
+    """The factors of the tent integrals over the shape of radius r > 0, per kernel offset
+    (rows) and sub-column (columns): offsets o, t = o - y at the chords' ends (a at the top,
+    b at the bottom), the exact integral along y and the midpoint rule along x, and the
+    sub-columns' centres. Kept for the last two radii: a kernel and then its moments (the
+    level scatter asks for both) share them."""
+    s = support_radius(r)
+    xmin, xmax = aperture.x_extent(r)
+    m = max(256, int(math.ceil((xmax - xmin) * TENT_X_SUBSAMPLES)))  # at least 256: small shapes too
+    edges = np.linspace(xmin, xmax, m + 1)
+    x, width = 0.5 * (edges[1:] + edges[:-1]), np.diff(edges)
+    lo, hi = aperture.chord(x, r)
+    hi = np.maximum(hi, lo)
+    offs = np.arange(-s, s + 1, dtype=np.float64)[:, None]
+    a, b = offs - hi[None, :], offs - lo[None, :]  # t = offset - y over the chord
+    along_y = _tent_integral(b) - _tent_integral(a)  # (2S+1, m)
+    along_x = np.maximum(0.0, 1.0 - np.abs(offs - x[None, :])) * width[None, :]  # (2S+1, m)
+    out = (offs, a, b, along_y, along_x, x)
+    for arr in out:
+        arr.setflags(write=False)
+    return out
 
 
 def tent_weights(aperture: Aperture, radius: float) -> np.ndarray:
@@ -94,18 +125,9 @@ def tent_weights(aperture: Aperture, radius: float) -> np.ndarray:
     over TENT_X_SUBSAMPLES sub-columns per pixel of the shape's x-extent (at least 256), so it
     is continuous in r."""
     r = abs(float(radius))
-    s = support_radius(r)
     if r == 0.0:
         return np.ones((1, 1))
-    xmin, xmax = aperture.x_extent(r)
-    m = max(256, int(math.ceil((xmax - xmin) * TENT_X_SUBSAMPLES)))  # at least 256: small shapes too
-    edges = np.linspace(xmin, xmax, m + 1)
-    x, width = 0.5 * (edges[1:] + edges[:-1]), np.diff(edges)
-    lo, hi = aperture.chord(x, r)
-    hi = np.maximum(hi, lo)
-    offs = np.arange(-s, s + 1, dtype=np.float64)[:, None]
-    along_y = _tent_integral(offs - lo[None, :]) - _tent_integral(offs - hi[None, :])  # (2S+1, m)
-    along_x = np.maximum(0.0, 1.0 - np.abs(offs - x[None, :])) * width[None, :]        # (2S+1, m)
+    along_y, along_x = _tent_terms(aperture, r)[3:5]
     return along_y @ along_x.T
 
 
@@ -129,3 +151,36 @@ def kernel(aperture: Aperture, signed_radius: float) -> np.ndarray:
     if not math.isfinite(r):
         raise ValueError(f"signed_radius must be finite, got {signed_radius}")
     return _kernel_cached(aperture, r)
+
+
+@lru_cache(maxsize=512)
+def _moments_cached(aperture: Aperture, signed_radius: float) -> tuple[np.ndarray, np.ndarray]:
+    r = abs(signed_radius)
+    rr = r if r > 0.0 else 1.0
+    offs, a, b, along_y, along_x, x = _tent_terms(aperture, rr)
+    y_mom = (offs * along_y - (_tent_moment_integral(b) - _tent_moment_integral(a))) / rr  # y = offset - t
+    total = float(along_y.sum(axis=0) @ along_x.sum(axis=0))  # the kernel's sum, without the kernel
+    mx, my = along_y @ (along_x * (x / rr)[None, :]).T / total, y_mom @ along_x.T / total
+    if r == 0.0:  # the identity: its one pixel carries the whole shape, whose centroid it holds
+        mx, my = np.full((1, 1), mx.sum()), np.full((1, 1), my.sum())
+    out = []
+    for m in (mx, my):
+        m = m.astype(np.float32)
+        if signed_radius < 0:  # the kernel's reflection: the same aperture points, mirrored pixels
+            m = np.ascontiguousarray(m[::-1, ::-1])
+        m.setflags(write=False)
+        out.append(m)
+    return out[0], out[1]
+
+
+def kernel_moments(aperture: Aperture, signed_radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Mx, My), float32 of the kernel's shape (read-only): the first moments of the aperture
+    coordinate p = (x, y) / r (units of the radius; x right, y down, before the reflection of a
+    negative radius) that each kernel pixel carries, with the kernel's normalization. So
+    sum(Mx) is the shape's centroid x, and Mx / K the mean p_x of the aperture points whose
+    light lands on that pixel (where a plain u / c is wrong within a pixel of the rim and at
+    small radii, which the tent blurs). Cached on the exact float."""
+    r = float(signed_radius)
+    if not math.isfinite(r):
+        raise ValueError(f"signed_radius must be finite, got {signed_radius}")
+    return _moments_cached(aperture, r)

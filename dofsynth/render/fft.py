@@ -57,36 +57,50 @@ class Convolver:
     no zero margin. `add_into` adds the part of it that lands in a destination. Small kernels
     use cv2.filter2D, large ones float32 FFTs (next_fast_len sizes, one channel and one tile at a
     time) taken axis by axis: the real transform along rows runs only over the input rows that
-    hold data (once, even where bands overlap) and its inverse only over the rows kept."""
+    hold data (once, even where bands overlap) and its inverse only over the rows kept.
+
+    Only the kernel's non-zero bounding box is convolved (same result, placed the same way):
+    a polygon's kernel has empty rows, a sub-aperture cell's fills a small part of its
+    (2S+1)^2 array, and then takes the direct path or smaller FFTs."""
 
     def __init__(self, signed_radius: float, aperture: Aperture, h: int, w: int, tiling: Tiling = TILING,
                  k: np.ndarray | None = None):
-        self.s = s = support_radius(signed_radius)
-        self.k = kernel(aperture, signed_radius) if k is None else k  # k: another kernel of that size
+        self.s = support_radius(signed_radius)
+        k = kernel(aperture, signed_radius) if k is None else k  # k: another kernel of that size
+        self.k = k
+        self.ky0, self.kx0 = trim_box(k)[:2]  # the kernel used starts there in the (2S+1)^2 array
+        k = trimmed(k)
+        self.used = k
+        self.eh, self.ew = k.shape[0] - 1, k.shape[1] - 1  # the full convolution's growth per axis
         self.h, self.w = h, w
-        self.direct = s <= SMALL_KERNEL
+        self.direct = max(self.eh, self.ew) <= 2 * SMALL_KERNEL
         self.ty, self.tx = h, w
         if self.direct:
-            self.flipped = np.ascontiguousarray(self.k[::-1, ::-1])
+            self.flipped = np.ascontiguousarray(k[::-1, ::-1])
         else:
-            if w + 2 * s > tiling.wide:
-                self.tx = sfft.next_fast_len(max(tiling.wide // 2, tiling.s_factor * s), real=True) - 2 * s
-            if h + 2 * s > tiling.above:
-                self.ty = sfft.next_fast_len(max(tiling.rows, tiling.s_factor * s), real=True) - 2 * s
-            self.n0 = sfft.next_fast_len(self.ty + 2 * s, real=True)
-            self.n1 = sfft.next_fast_len(self.tx + 2 * s, real=True)
-            self.spec = _kernel_spectrum(self.k, self.n0, self.n1)
+            if w + self.ew > tiling.wide:
+                self.tx = sfft.next_fast_len(max(tiling.wide // 2, tiling.s_factor * (self.ew // 2)),
+                                             real=True) - self.ew
+            if h + self.eh > tiling.above:
+                self.ty = sfft.next_fast_len(max(tiling.rows, tiling.s_factor * (self.eh // 2)),
+                                             real=True) - self.eh
+            self.n0 = sfft.next_fast_len(self.ty + self.eh, real=True)
+            self.n1 = sfft.next_fast_len(self.tx + self.ew, real=True)
+            self.spec = _kernel_spectrum(k, self.n0, self.n1)
 
     def _direct(self, tile, i0: int, i1: int, j0: int, j1: int) -> np.ndarray:
         """Full convolution of input[i0:i1, j0:j1] by cv2.filter2D (small kernels); the block
         is written straight into the middle of its zero-padded buffer."""
-        s2 = 2 * self.s
-        pad = np.zeros((i1 - i0 + 2 * s2, j1 - j0 + 2 * s2), np.float32)
-        tile(i0, i1, j0, j1, pad[s2 : s2 + i1 - i0, s2 : s2 + j1 - j0])
-        if not s2:
+        eh, ew = self.eh, self.ew
+        pad = np.zeros((i1 - i0 + 2 * eh, j1 - j0 + 2 * ew), np.float32)
+        tile(i0, i1, j0, j1, pad[eh : eh + i1 - i0, ew : ew + j1 - j0])
+        if not (eh or ew):  # a 1 x 1 kernel: the identity, or a scale (a moment kernel at radius 0)
+            if self.used[0, 0] != 1.0:
+                pad *= self.used[0, 0]
             return pad
-        out = cv2.filter2D(pad, -1, self.flipped, anchor=(self.s, self.s), borderType=cv2.BORDER_CONSTANT)
-        return out[self.s : self.s + i1 - i0 + s2, self.s : self.s + j1 - j0 + s2]
+        ay, ax = eh // 2, ew // 2
+        out = cv2.filter2D(pad, -1, self.flipped, anchor=(ax, ay), borderType=cv2.BORDER_CONSTANT)
+        return out[ay : ay + i1 - i0 + eh, ax : ax + j1 - j0 + ew]
 
     def add_into(self, tile, dst: np.ndarray, oy: int, ox: int) -> None:
         """dst[oy + p, ox + q] += full[p, q] where it lies inside dst; the input comes from
@@ -95,9 +109,10 @@ class Convolver:
         only the part of `full` inside dst is computed, in output tiles of (ty, tx), each from
         the input reaching it."""
         H, W = dst.shape
-        s2 = 2 * self.s
-        rows = list(_spans(max(-oy, 0), min(H - oy, self.h + s2), self.h, s2, self.ty))
-        for q0, q1, j0, j1 in _spans(max(-ox, 0), min(W - ox, self.w + s2), self.w, s2, self.tx):
+        oy, ox = oy + self.ky0, ox + self.kx0
+        eh, ew = self.eh, self.ew
+        rows = list(_spans(max(-oy, 0), min(H - oy, self.h + eh), self.h, eh, self.ty))
+        for q0, q1, j0, j1 in _spans(max(-ox, 0), min(W - ox, self.w + ew), self.w, ew, self.tx):
             if not self.direct:
                 self._add_bands(tile, dst, oy, ox + q0, rows, q1 - q0, q0 - j0, j0, j1)
                 continue
@@ -108,9 +123,9 @@ class Convolver:
     def _add_bands(self, tile, dst, oy, ox, rows, width, skip, j0, j1) -> None:
         """One column tile by FFT: for each band (p0, p1, i0, i1) of `rows`, output rows p0 .. p1
         (columns skip .. skip + width of the block) from input rows i0 .. i1, columns j0 .. j1.
-        Rows first: each input row's real transform is taken once (bands share 2S rows), and
-        the inverse one only for the rows kept."""
-        n0, n1, s2 = self.n0, self.n1, 2 * self.s
+        Rows first: each input row's real transform is taken once (bands share the kernel's
+        height less one rows), and the inverse one only for the rows kept."""
+        n0, n1, eh = self.n0, self.n1, self.eh
         real = np.empty((n0, n1), np.float32)  # a band's new input rows, zero-padded to n1
         half = np.empty((n0, n1 // 2 + 1), np.complex64)  # the band's row spectra, zero-padded to n0
         shared, shared0 = half[:0], 0  # row spectra the next band reuses, from input row shared0
@@ -123,13 +138,57 @@ class Convolver:
                 real[: i1 - lo, j1 - j0 :] = 0.0
                 half[lo - i0 : i1 - i0] = sfft.rfft(real[: i1 - lo], axis=1)
             half[i1 - i0 :] = 0.0
-            shared0 = max(i0, p1 - s2)  # the next band's input starts at its p0 - 2S = p1 - 2S
+            shared0 = max(i0, p1 - eh)  # the next band's input starts at its p0 - eh = p1 - eh
             shared = half[shared0 - i0 : i1 - i0].copy()
             spec = sfft.fft(half, axis=0, overwrite_x=True)
             spec *= self.spec
             spec = sfft.ifft(spec, axis=0, overwrite_x=True)
             out = sfft.irfft(spec[p0 - i0 : p1 - i0], n=n1, axis=1)
             dst[oy + p0 : oy + p1, ox : ox + width] += out[:, skip : skip + width]
+
+
+def trim_box(k: np.ndarray) -> tuple[int, int, int, int]:
+    """(y0, x0, y1, x1): the bounding box of a kernel's non-zero taps (all of it when none)."""
+    if not k.any():
+        return 0, 0, k.shape[0], k.shape[1]
+    rows, cols = np.flatnonzero(k.any(axis=1)), np.flatnonzero(k.any(axis=0))
+    return int(rows[0]), int(cols[0]), int(rows[-1]) + 1, int(cols[-1]) + 1
+
+
+def trimmed(k: np.ndarray, box: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """The kernel cut to `box` (default its non-zero bounding box, `trim_box`)."""
+    y0, x0, y1, x1 = trim_box(k) if box is None else box
+    return k[y0:y1, x0:x1]
+
+
+STACK_FFT_MAX = 2048 * 2048  # padded FFT area up to which `convolve_stack` is used (memory)
+
+
+def stack_fits(h: int, w: int, kh: int, kw: int) -> bool:
+    """Whether `convolve_stack` takes inputs (h, w) and kernels (kh, kw) in one FFT."""
+    return (h + kh - 1) * (w + kw - 1) <= STACK_FFT_MAX
+
+
+def convolve_stack(x: np.ndarray, kernels: np.ndarray, pairs, valid: bool = False) -> np.ndarray:
+    """Linear convolutions of channels of x (C, h, w) with kernels (K, kh, kw), float32:
+    pairs[i] = (kernel index, channel index). The full convolutions (len(pairs), h + kh - 1,
+    w + kw - 1), or with `valid` only the outputs that every kernel tap reaches inside x
+    ((len(pairs), h - kh + 1, w - kw + 1): a circular FFT of the input's size is then enough).
+    Three batched float32 FFT calls whatever the count (the channels' transforms, the
+    kernels', the inverse of the products): for a few small channels, where the per-channel
+    `Convolver` spends most of its time around the transforms. Equal to direct convolution to
+    float32 rounding (tested)."""
+    h, w = x.shape[1:]
+    kh, kw = kernels.shape[1:]
+    m0, m1 = (h, w) if valid else (h + kh - 1, w + kw - 1)
+    n0, n1 = sfft.next_fast_len(m0, real=True), sfft.next_fast_len(m1, real=True)
+    spec = sfft.rfft2(x, s=(n0, n1))
+    kspec = sfft.rfft2(kernels, s=(n0, n1))
+    ki, ci = (list(v) for v in zip(*pairs))
+    prod = kspec[ki]
+    prod *= spec[ci]
+    out = sfft.irfft2(prod, s=(n0, n1), overwrite_x=True)
+    return out[:, kh - 1 : h, kw - 1 : w] if valid else out[:, :m0, :m1]
 
 
 def copy_tile(a: np.ndarray):
@@ -154,8 +213,9 @@ def convolve(x: np.ndarray, signed_radius: float, aperture: Aperture) -> np.ndar
 
 def _spans(lo: int, hi: int, n: int, s2: int, step: int):
     """Overlap-save along one axis: output ranges [p0, p1) of a full convolution (length
-    n + s2, s2 = 2S) covering [lo, hi) in steps of `step`, each with the input range [i0, i1)
-    that reaches it (input i lands on outputs i .. i + s2). step >= n: one span, all input."""
+    n + s2, s2 = the kernel's length less one) covering [lo, hi) in steps of `step`, each with
+    the input range [i0, i1) that reaches it (input i lands on outputs i .. i + s2). step >= n:
+    one span, all input."""
     if hi <= lo:
         return
     if step >= n:

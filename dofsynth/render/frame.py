@@ -56,9 +56,10 @@ def grab(a: np.ndarray, y0: int, y1: int, x0: int, x1: int, edge: bool,
 
 
 def add_clipped(dst: np.ndarray, y0: int, x0: int, block: np.ndarray) -> None:
-    """dst[y0:, x0:] += block, for the part of the block that lies inside dst."""
-    H, W = dst.shape
-    h, w = block.shape
+    """dst[..., y0:, x0:] += block, for the part of the block that lies inside dst (over the
+    last two axes; leading axes broadcast)."""
+    H, W = dst.shape[-2:]
+    h, w = block.shape[-2:]
     cy0, cx0, cy1, cx1 = max(y0, 0), max(x0, 0), min(y0 + h, H), min(x0 + w, W)
     if cy1 > cy0 and cx1 > cx0:
-        dst[cy0:cy1, cx0:cx1] += block[cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0]
+        dst[..., cy0:cy1, cx0:cx1] += block[..., cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0]

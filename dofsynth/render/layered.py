@@ -16,7 +16,7 @@ neighbouring levels with linear weights `w_k`, and `out = sum_k K_k * (w_k P) / 
 (the denominator is the same scatter applied to ones; a 1-D convolution when the map is a
 broadcast row or column). A constant map is one level, i.e. the exact constant result. For a
 ramp (a broadcast row or column) each pixel's disc is also weighted by the Jacobian of its
-parallax, 1 + p . grad(c) for the aperture point p it reaches (`_moment_kernel`): what a thin lens
+parallax, 1 + p . grad(c) for the aperture point p it reaches (`kernel_moments`): what a thin lens
 gathers from a slanted plane, which a plain scatter lacks. The approximations are the linear
 interpolation of kernels between levels and the first-order Jacobian (docs/rendering.md).
 No torch here: this module is on the data-generation path.
@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from dofsynth.optics.coc import coc_radius
-from dofsynth.optics.kernel import support_radius
+from dofsynth.optics.kernel import kernel_moments, support_radius
 from dofsynth.render.fft import Convolver, copy_tile
 from dofsynth.render.frame import add_clipped, compact, grab, is_one
 from dofsynth.render.planes import alpha_box
@@ -41,13 +41,10 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
     """Blur a constant-CoC plane over its alpha box and composite it "over" `acc` (3, H, W),
     one channel at a time: the blurred alpha first, then each premultiplied colour."""
     _, H, W = acc.shape
-    y0, y1, x0, x1 = box
     s = support_radius(c)
-    if backmost:  # the frame, edge-replicated S px beyond it: its blur covers the frame
-        gy0, gy1, gx0, gx1 = -s, H + s, -s, W + s
-    else:  # the alpha box, edge-replicated S px beyond each frame edge it touches
-        gy0, gy1 = (-s if y0 == 0 else y0), (H + s if y1 == H else y1)
-        gx0, gx1 = (-s if x0 == 0 else x0), (W + s if x1 == W else x1)
+    # the frame for the backmost plane (its box), else the alpha box; edge-replicated S px
+    # beyond each frame edge it touches; its blur lands in O
+    (gy0, gy1, gx0, gx1), (oy0, oy1, ox0, ox1) = cutout_regions(box, s, H, W)
     h, w = gy1 - gy0, gx1 - gx0
     conv = Convolver(c, aperture, h, w)
     if backmost:  # acc is still black: add the blur straight into it, tile by tile
@@ -59,10 +56,8 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
                     out *= grab(alpha, gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True)
             conv.add_into(tile, acc[ch], gy0 - s, gx0 - s)
         return
-    # a cutout: acc *= 1 - blur(alpha), then acc += blur(colour * alpha), over the blur's
-    # footprint clipped to the frame (the blurs are added straight into acc, tile by tile)
-    oy0, ox0 = max(gy0 - s, 0), max(gx0 - s, 0)
-    oy1, ox1 = min(gy1 + s, H), min(gx1 + s, W)
+    # a cutout: acc *= 1 - blur(alpha), then acc += blur(colour * alpha), over O (the blurs
+    # are added straight into acc, tile by tile)
     a_src = np.ascontiguousarray(grab(alpha, gy0, gy1, gx0, gx1, True), dtype=np.float32)
     keep = np.zeros((oy1 - oy0, ox1 - ox0), np.float32)
     conv.add_into(copy_tile(a_src), keep, gy0 - s - oy0, gx0 - s - ox0)
@@ -115,14 +110,6 @@ def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0)
 
 
 MAX_SLOPE = 0.5  # |grad c| (px per px) the Jacobian weight uses at most: it stays >= 1/2
-
-
-def _moment_kernel(k: np.ndarray, ck: float, along: int) -> np.ndarray:
-    """K * u / c_k, u the offset along axis `along` (0 rows, 1 columns): the kernel weighted
-    by the aperture coordinate p = u / c of each displacement."""
-    s = k.shape[0] // 2
-    u = (np.arange(-s, s + 1, dtype=np.float32) / np.float32(ck))
-    return np.ascontiguousarray(k * (u[:, None] if along == 0 else u[None, :]))
 
 
 def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, backmost, level_step,
@@ -194,9 +181,10 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         ty0, tx0 = fy0 - s - oy0, fx0 - s - ox0
         a_sub = None if one else grab(alpha, fy0, fy1, fx0, fx1, True)
         passes = [(conv, wsub)]
-        if slope is not None and ck != 0.0:  # the Jacobian's first-order term: K u / c times the slope
-            mk = _moment_kernel(conv.k, float(ck), along)
-            passes.append((Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=mk), wsub * slope[sub]))
+        if slope is not None:  # the Jacobian's first-order term: the p-moment kernel times the slope
+            mk = kernel_moments(aperture, float(ck))[1 - along]
+            if float(np.abs(mk).max()) > 1e-6:  # not a disc's identity level (its centroid is 0)
+                passes.append((Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=mk), wsub * slope[sub]))
         for cv, wk in passes:  # weight, alpha and colour of each pass
             if along == 0:
                 add_clipped(w_acc, ty0, 0, np.convolve(wk[:, 0], cv.k.sum(axis=1))[:, None])
@@ -227,6 +215,26 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         region[ch] += col[ch]
 
 
+def plane_box(plane, alpha: np.ndarray):
+    """(y0, y1, x0, x1): the bounding box of a cutout's alpha > 0 (searched inside its `box`
+    when it has one), or None when it is fully transparent."""
+    if plane.box is None:
+        return alpha_box(alpha)
+    by0, by1, bx0, bx1 = (int(v) for v in plane.box)
+    inner = alpha_box(alpha[by0:by1, bx0:bx1]) if by1 > by0 and bx1 > bx0 else None
+    return None if inner is None else (by0 + inner[0], by0 + inner[1], bx0 + inner[2], bx0 + inner[3])
+
+
+def cutout_regions(box, s: int, H: int, W: int):
+    """For a cutout's alpha box and a kernel of support radius s: the input box G (the alpha
+    box, edge-replicated s px beyond each frame edge it touches) and the output box O (G's
+    blur footprint clipped to the frame), each (y0, y1, x0, x1)."""
+    y0, y1, x0, x1 = box
+    gy0, gy1 = (-s if y0 == 0 else y0), (H + s if y1 == H else y1)
+    gx0, gx1 = (-s if x0 == 0 else x0), (W + s if x1 == W else x1)
+    return (gy0, gy1, gx0, gx1), (max(gy0 - s, 0), min(gy1 + s, H), max(gx0 - s, 0), min(gx1 + s, W))
+
+
 def render_layered(planes, focus: float, max_coc: float, aperture, options) -> np.ndarray:
     """The layered render of validated planes (back to front): linear RGB (3, H, W) float32,
     the premultiplied composite over black. `options`: a dofsynth.render.RenderOptions (its
@@ -237,14 +245,7 @@ def render_layered(planes, focus: float, max_coc: float, aperture, options) -> n
         backmost = i == 0
         alpha = np.asarray(plane.alpha, dtype=np.float32)
         rgb = np.asarray(plane.rgb, dtype=np.float32)
-        if backmost:
-            box = (0, H, 0, W)
-        elif plane.box is not None:  # alpha is 0 outside it: the bounding box of alpha > 0 inside
-            by0, by1, bx0, bx1 = (int(v) for v in plane.box)
-            inner = alpha_box(alpha[by0:by1, bx0:bx1]) if by1 > by0 and bx1 > bx0 else None
-            box = None if inner is None else (by0 + inner[0], by0 + inner[1], bx0 + inner[2], bx0 + inner[3])
-        else:
-            box = alpha_box(alpha)
+        box = (0, H, 0, W) if backmost else plane_box(plane, alpha)
         if box is None:  # fully transparent: nothing to add
             continue
         d = plane.constant_disparity()
