@@ -99,6 +99,13 @@ def cat_eye_weights(cell: Cell, shape: tuple[int, int], strength: float) -> np.n
     vignetting circle (radius 1 about cat_eye_offset), measured by points on a grid of
     CAT_EYE_GRID x CAT_EYE_GRID frame positions and interpolated bilinearly (smooth)."""
     h, w = shape
+    return cv2.resize(_cat_eye_grid(cell, (int(h), int(w)), float(strength)), (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+@lru_cache(maxsize=256)
+def _cat_eye_grid(cell: Cell, shape: tuple[int, int], strength: float) -> np.ndarray:
+    """The CAT_EYE_GRID x CAT_EYE_GRID measured shares of `cat_eye_weights` (read-only)."""
+    h, w = shape
     t = (np.arange(CAT_EYE_POINTS) + 0.5) / CAT_EYE_POINTS
     px = cell.x0 + (cell.x1 - cell.x0) * t
     py = cell.y0 + (cell.y1 - cell.y0) * t
@@ -109,8 +116,9 @@ def cat_eye_weights(cell: Cell, shape: tuple[int, int], strength: float) -> np.n
     gx = np.linspace(0, w - 1, CAT_EYE_GRID)
     oy, ox = cat_eye_offset(shape, strength, *np.meshgrid(gy, gx, indexing="ij"))
     d2 = (py[None, None] - oy[..., None, None]) ** 2 + (px[None, None] - ox[..., None, None]) ** 2
-    coarse = ((d2 <= 1.0) & inside).sum(axis=(2, 3)) * unit
-    return cv2.resize(coarse.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+    coarse = (((d2 <= 1.0) & inside).sum(axis=(2, 3)) * unit).astype(np.float32)
+    coarse.setflags(write=False)
+    return coarse
 
 
 def _p_gradient(x: np.ndarray, c) -> np.ndarray:
