@@ -95,7 +95,7 @@ STAGES = (("scene", "dofsynth.generate.worker", "sample_scene"), ("compose", "do
           ("encode aif+dof", "dofsynth.sample", "encode_srgb_png_rows"),
           ("encode aif+dof", "dofsynth.sample", "encode_srgb_png_planar"),  # dof.N.png (planar render)
           ("encode aif+dof", "dofsynth.sample", "encode_png8"),
-          ("encode cover", "dofsynth.sample", "encode_alphas"), ("encode depth", "dofsynth.sample", "encode_exr"))
+          ("encode cover", "dofsynth.sample", "encode_alphas"), ("encode depth", "dofsynth.sample", "encode_depth"))
 
 
 def generation_stages(sizes, samples: int) -> None:
