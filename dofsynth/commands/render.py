@@ -80,8 +80,9 @@ def register(subparsers) -> None:
                    help="boost near-white pixels to brighter-than-white before blurring, so highlights "
                         "become bright bokeh discs, and map the result back (dofsynth.highlight; not with --model)")
     p.add_argument("--method", choices=("layered", "subaperture", "exact"), default="layered",
-                   help="layered (fast, default), subaperture (--cells N: N x N aperture cells, about N^2 "
-                        "times the cost) or exact (aperture sampling; slow, for small images)")
+                   help="layered (fast, default), subaperture (--cells N: N x N aperture cells, up to about N^2 "
+                        "times the cost; it shows what blurred edges of layered scenes reveal, so a single "
+                        "photo gains little) or exact (aperture sampling; slow, for small images)")
     p.add_argument("--cells", type=int_at_least(1), default=3, metavar="N",
                    help="with --method subaperture: an N x N grid of aperture cells, 1..16 (default 3)")
     p.add_argument("--cat-eye", type=_nonneg, default=0.0, metavar="S",
