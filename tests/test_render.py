@@ -330,7 +330,8 @@ def test_transparent_plane_changes_nothing():
 
 @pytest.mark.parametrize("tiling", [None, Tiling(above=30, rows=30, wide=40)])
 @pytest.mark.parametrize("radius,ap", [(3.2, Disk()), (-9.6, Disk()), (14.7, Disk()),  # direct, FFT, S past the band
-                                       (9.6, Polygon(5, 0.0)), (-13.3, "cell")])      # kernels with empty rows
+                                       (9.6, Polygon(5, 0.0)), (-13.3, "cell"),       # kernels with empty rows:
+                                       (7.4, "cell")])                                 # trimmed to direct
 def test_the_convolver_equals_a_float64_direct_convolution_tiled_or_not(tiling, radius, ap):
     """Convolver.add_into adds the full convolution of its input at any offset of a
     destination, clipped to it, whatever the tiling (overlap-save bands and column tiles) and
@@ -345,6 +346,7 @@ def test_the_convolver_equals_a_float64_direct_convolution_tiled_or_not(tiling, 
     x = g.random((h, w), dtype=np.float32)
     conv = Convolver(radius, ap, h, w) if tiling is None else Convolver(radius, ap, h, w, tiling)
     assert (conv.used.shape != conv.k.shape) == (not isinstance(ap, Disk))
+    assert conv.direct == (radius in (3.2, 7.4))
     s = support_radius(radius)
     full = convolve2d(x.astype(np.float64), kernel(ap, radius).astype(np.float64), mode="full")
     for shape, oy, ox in [((h + 2 * s, w + 2 * s), 0, 0), ((50, 60), -7, 11), ((120, 40), 30, -25),
