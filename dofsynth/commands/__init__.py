@@ -44,9 +44,6 @@ def output_file(out: str, image: str, name: str, suffixes: tuple[str, ...]):
     """The file an image command writes: `out` itself when it names a file with one of
     `suffixes`, or OUT/<image stem><name> when `out` is a folder (existing, or ending in /),
     created if needed, like the folder --out of the other commands."""
-    import os
-    from pathlib import Path
-
     path = Path(out)
     if path.is_dir() or out.endswith((os.sep, "/")):
         return path / f"{Path(image).stem}{name}"
