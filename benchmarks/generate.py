@@ -85,7 +85,8 @@ def real_recipe(size: int, samples: int, shard_size: int = 1):
 def io_floor(recipe, n: int, folder: Path) -> float:
     """Seconds per sample to encode the decoded arrays again and write them as one tar."""
     from dofsynth.io import encode_exr
-    from dofsynth.record import decode_sample, encode_cover, encode_png8, encode_record
+    from dofsynth.codecs import encode_alphas, encode_png8
+    from dofsynth.record import decode_sample, encode_record
     from dofsynth.shards import write_shard
 
     library = library_for(recipe)
@@ -95,7 +96,7 @@ def io_floor(recipe, n: int, folder: Path) -> float:
     out = []
     for (key, _), d in zip(samples, decoded):
         members = {"aif.png": encode_png8(d["aif"]), "depth.exr": encode_exr(d["depth"]),
-                   "cover.png": encode_cover(d["cover"]), "json": encode_record(d["record"])}
+                   "cover.png": encode_alphas(d["cover"][..., 0], d["cover"][..., 1]), "json": encode_record(d["record"])}
         members.update({f"dof.{i}.png": encode_png8(img) for i, img in enumerate(d["dof"])})
         out.append((key, members))
     write_shard(folder / "floor.tar", out)

@@ -6,7 +6,8 @@ The signed circle-of-confusion radius in pixels is `c = max_coc * (disparity - f
 (dofsynth.optics.coc_radius).
 
 The package reads as the data flow, each stage importing only earlier ones:
-config/recipe/rng/files/color/image/io -> optics -> assets -> scene -> render -> compose ->
-record -> sample -> shards/manifest/locks -> generate -> qa -> train -> commands/cli.
+config/files/progress/shipped/rng/color/image/io -> optics -> codecs -> render -> record
+(the member table) -> recipe -> assets -> scene -> compose -> sample -> shards -> manifest ->
+generate -> qa -> train -> commands/cli (tests/test_layout.py holds the order).
 """
 __version__ = "0.1.0"

@@ -1,4 +1,4 @@
-"""Colour transfer functions (the highlight boost is in dofsynth.highlight).
+"""Colour transfer functions (the highlight boost is in dofsynth.render.highlight).
 
 All images in files are sRGB-encoded; every blur and composite happens in linear light
 (float32). Functions here are pure and vectorised over any array shape.

@@ -20,10 +20,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from dofsynth.assets import Asset, AssetLibrary
+from dofsynth.assets.placement import ObjectParams, placed_size
 from dofsynth.image import pyramid_level, resize
-from dofsynth.render.planes import Plane, alpha_box
-from dofsynth.placement import ObjectParams, placed_size
-from dofsynth.scene import Scene, background_disparity
+from dofsynth.render.planes import Plane, alpha_box, background_disparity
+from dofsynth.scene import Scene
 
 COVER_THRESHOLD = 0.5
 

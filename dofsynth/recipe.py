@@ -21,6 +21,9 @@ from dofsynth.shipped import recipe_path
 from dofsynth.optics.aperture import APERTURES
 from dofsynth.optics.coc import MAX_COC_PER_SIDE
 from dofsynth.optics.lens import ThinLens
+from dofsynth.record import member_options, unknown_options
+from dofsynth.render import METHODS
+from dofsynth.render.look import Highlight, Look
 
 BUILTIN = "builtin"
 dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
@@ -97,7 +100,7 @@ class FocusRules:
 
 @dataclass_kw
 class ApertureRules:
-    kind: str = key("disk", choices=tuple(APERTURES))  # the aperture registry's kinds
+    kind: str = key("disk")                          # a kind of the aperture registry (APERTURES)
     blades: int = key(6, lo=3, hi=16)                # polygon only
     rotation: Range = key((0.0, 0.0), lo=-360.0, hi=360.0)  # polygon only, degrees, drawn per scene
 
@@ -110,18 +113,14 @@ class HighlightRules:
     power: float = key(2.0, lo=0.0, hi=16.0, lo_open=True)
 
 
-# coc.N.exr per target; layer.K.exr per plane; dp.N.left/right.png per target (docs/FORMAT.md)
-OPTIONAL_MEMBERS = ("coc", "layers", "dual_pixel")
-
-
 @dataclass_kw
 class RenderRules:
     linear_light: bool = key(True)
-    members: tuple[str, ...] = key(())   # optional members per sample: any of OPTIONAL_MEMBERS
+    members: tuple[str, ...] = key(())   # optional members per sample: options of dofsynth.record.MEMBERS
     chromatic: tuple[float, ...] = key((1.0, 1.0, 1.0), lo=0.25, hi=4.0)  # CoC scale of R, G, B (longitudinal CA)
-    method: str = key("layered", choices=("layered", "subaperture", "exact"))  # dofsynth.render.METHODS
-    cells: int = key(3, lo=1, hi=16)     # subaperture: an n x n grid of aperture cells
-    cat_eye: float = key(0.0, lo=0.0, hi=1.0)  # optical vignetting strength (subaperture, exact)
+    method: str = key("layered")          # a key of dofsynth.render.METHODS
+    cells: int = key(3, lo=1, hi=16)     # methods reading cells (subaperture): an n x n grid of aperture cells
+    cat_eye: float = key(0.0, lo=0.0, hi=1.0)  # methods reading cat_eye (subaperture, exact): vignetting strength
     aperture: ApertureRules = table(ApertureRules)
     highlight: HighlightRules = table(HighlightRules)
 
@@ -155,21 +154,59 @@ def frame_size(size: int, aspect: float) -> tuple[int, int]:
     return size, max(1, round(size * aspect))
 
 
-def _check(r: Recipe, file: str) -> None:
-    """The rules between keys: at least one sample, a ramp that falls, planes in front."""
+def recipe_look(r: Recipe) -> Look:
+    """How the recipe's targets are rendered (its [render] table): the method with the options
+    it reads, highlight boost (linear light only), chromatic scales, colour space."""
+    rr, hl = r.render, r.render.highlight
+    return Look(method=rr.method, cells=rr.cells if "cells" in METHODS[rr.method].options else 1,
+                cat_eye=rr.cat_eye, chromatic=tuple(rr.chromatic),
+                highlight=Highlight(hl.threshold, hl.gain, hl.power) if hl.enabled and rr.linear_light else None,
+                linear_light=rr.linear_light)
+
+
+def _check_render(r: Recipe, given: dict, file: str) -> None:
+    """[render]: a known method and members, and no option that the renderer would not apply
+    (`given` is the [render] table as written, to tell a default from a choice)."""
+    rr = r.render
+    if rr.aperture.kind not in APERTURES:
+        raise error(file, "render.aperture.kind", f"one of {list(APERTURES)}", rr.aperture.kind)
+    if rr.method not in METHODS:
+        raise error(file, "render.method", f"one of {list(METHODS)}", rr.method)
+    users = {f: [n for n, m in METHODS.items() if f in m.options] for f in ("cells", "cat_eye")}
+    for f in ("cells", "cat_eye"):
+        if f in given and f not in METHODS[rr.method].options and given[f] != (0.0 if f == "cat_eye" else None):
+            raise error(file, f"render.{f}", f"no {f} with method {rr.method} (it applies to method "
+                        f"{' or '.join(users[f])}); remove it or choose that method", given[f])
+    if len(rr.chromatic) != 3:
+        raise error(file, "render.chromatic", "three CoC scales (R, G, B)", list(rr.chromatic))
+    if max(rr.chromatic) * r.focus.max_coc[1] > MAX_COC_PER_SIDE * r.size:
+        raise error(file, "render.chromatic", f"scales that keep max_coc * scale <= {MAX_COC_PER_SIDE * r.size}",
+                    list(rr.chromatic))
+    known = member_options()
+    if unknown_options(rr.members) or len(set(rr.members)) < len(rr.members):
+        raise error(file, "render.members", f"distinct names among {list(known)}", list(rr.members))
+    if not rr.linear_light:  # the naive baseline blurs sRGB codes: nothing that is light applies
+        hl = given.get("highlight", {})
+        naive = [("render.highlight", "enabled = false (the boost is of light)", hl)
+                 if hl and hl.get("enabled", True) else None,
+                 ("render.chromatic", "[1, 1, 1] (chromatic aberration is of light)", list(rr.chromatic))
+                 if tuple(rr.chromatic) != (1.0, 1.0, 1.0) else None,
+                 ("render.members", "no dual_pixel (its views are linear-light renders)", list(rr.members))
+                 if "dual_pixel" in rr.members else None]
+        for dotted, expected, got in filter(None, naive):
+            raise error(file, dotted, f"{expected} with render.linear_light = false", got)
+    try:
+        recipe_look(r)
+    except ValueError as exc:
+        raise ConfigError(f"{file}: render: {exc}") from None
+
+
+def _check(r: Recipe, file: str, given_render: dict) -> None:
+    """The rules between keys: at least one sample, a renderer that applies every option, a
+    ramp that falls, planes in front."""
     if r.samples.train + r.samples.test == 0:
         raise ConfigError(f"{file}: samples: expected at least one sample in train or test, got 0")
-    if r.render.cat_eye and r.render.method == "layered":
-        raise error(file, "render.cat_eye", "0 with method layered (cat's eyes need subaperture or exact)",
-                    r.render.cat_eye)
-    if len(r.render.chromatic) != 3:
-        raise error(file, "render.chromatic", "three CoC scales (R, G, B)", list(r.render.chromatic))
-    if max(r.render.chromatic) * r.focus.max_coc[1] > MAX_COC_PER_SIDE * r.size:
-        raise error(file, "render.chromatic", f"scales that keep max_coc * scale <= {MAX_COC_PER_SIDE * r.size}",
-                    list(r.render.chromatic))
-    bad = [m for m in r.render.members if m not in OPTIONAL_MEMBERS] or len(set(r.render.members)) < len(r.render.members)
-    if bad:
-        raise error(file, "render.members", f"distinct names among {list(OPTIONAL_MEMBERS)}", list(r.render.members))
+    _check_render(r, given_render, file)
     fo = r.focus
     if fo.lens.enabled:
         _check_lens(r, file)
@@ -225,8 +262,9 @@ def recipe_from_text(text: str, path_for_messages: str | os.PathLike, base_dir: 
     kept as `Recipe.path`; relative asset paths are resolved against `base_dir`."""
     file = str(path_for_messages)
     base = Path(base_dir).resolve()
-    r = read(Recipe, parse_toml(text, file), file)
-    _check(r, file)
+    data = parse_toml(text, file)
+    r = read(Recipe, data, file)
+    _check(r, file, data.get("render", {}))
     a = r.assets
     assets = dataclasses.replace(a, backgrounds=_resolve(a.backgrounds, base), foregrounds=_resolve(a.foregrounds, base),
                                  manifests=tuple(str((base / m).resolve()) for m in a.manifests))

@@ -3,6 +3,10 @@
 Every random choice of sample `index` of `split` comes from one generator,
 `default_rng(SeedSequence([recipe seed, SPLIT_ID[split], index]))`, so sample k is the same
 whether drawn alone or in a batch, on any machine, with any worker count or resume.
+
+Training draws from named streams of its seed (`stream_rng(seed, "item", epoch, split_id,
+index)`): the stream's id comes second, so two streams never share a generator whatever
+their keys, and each site names what it draws instead of a magic tag.
 """
 from __future__ import annotations
 
@@ -34,6 +38,35 @@ def sample_seed(recipe_seed: int, split: str, index: int) -> tuple[int, int, int
 def sample_rng(seed: tuple[int, ...]) -> np.random.Generator:
     """The generator of a sample's seed (`sample_seed`)."""
     return np.random.default_rng(np.random.SeedSequence(list(seed)))
+
+
+# The training streams (dofsynth.train): what each draws, and its id in the SeedSequence.
+STREAMS = {
+    "item": 1,          # one training item: target, crop, depth corruption (keys: epoch, split id, index)
+    "shard_order": 2,   # the order of a training epoch's shard segments (keys: epoch)
+    "shuffle": 3,       # a loader reader's shuffle buffer (keys: epoch, rank, worker)
+    "depth_plan": 4,    # the depth trainer's batches of an epoch (keys: epoch)
+    "depth_item": 5,    # one depth-training item's crop and augmentation (keys: epoch, batch, slot)
+    "init": 6,          # the initial weights (no keys)
+    "loader": 7,        # the torch DataLoader's own generator (no keys)
+}
+
+
+def stream_seed(seed: int, stream: str, *keys: int) -> np.random.SeedSequence:
+    """The SeedSequence of one named training stream (STREAMS) of a run's `seed`."""
+    if stream not in STREAMS:
+        raise ValueError(f"unknown random stream {stream!r}; known: {', '.join(STREAMS)}")
+    return np.random.SeedSequence([int(seed), STREAMS[stream], *(int(k) for k in keys)])
+
+
+def stream_rng(seed: int, stream: str, *keys: int) -> np.random.Generator:
+    """The numpy generator of one named training stream (STREAMS) of a run's `seed`."""
+    return np.random.default_rng(stream_seed(seed, stream, *keys))
+
+
+def stream_int(seed: int, stream: str, *keys: int) -> int:
+    """A 63-bit integer seed of one named stream (for torch's generators)."""
+    return int(stream_seed(seed, stream, *keys).generate_state(2, np.uint64)[0] >> np.uint64(1))
 
 
 def draw_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:

@@ -1,113 +1,105 @@
 """One sample rendered: `render_sample(scene, library)` -> its tar members `{suffix: bytes}`.
 
 Everything comes from the scene (its targets, aperture and options), so a sample can be
-re-rendered from its JSON record alone (`verify --deep`, focus sweeps):
-- `dof.N.png`: `unboost(render_planes(boost(planes), focus_N, max_coc_N, aperture))`: with
-  `options.highlight` set, each plane's colour is highlight-boosted (dofsynth.highlight) before
-  the blur and the result mapped back by the exact inverse; else the plain render.
-- `aif.png`: the same with no blur, `unboost(composite(boost(planes)))`, so a target equals it
-  wherever nothing that reaches a pixel is blurred;
-- `depth.exr`, `cover.png`: the disparity map and the two coverages (dofsynth.record);
-- with the recipe's `render.members`: `coc.N.exr` (target N's signed CoC map),
-  `layer.K.exr` (each plane before blur and boost) and `dp.N.left.png` / `dp.N.right.png`
-  (the left and right halves of the aperture: a dual-pixel pair; `dof.N.png` is then their
-  area-weighted sum, a two-cell sub-aperture render).
-With `options.linear_light = false` (the naive baseline, no highlight handling) the planes are
-sRGB-encoded before the blur and the result is stored as it is.
+re-rendered from its JSON record alone (`verify --deep`, focus sweeps). The members are the
+rows of the member table (dofsynth.record.MEMBERS) that the scene's `options.members` asks
+for, each made by its writer from a `SampleRender`:
+- `dof.N.png`: `restore(render_look(prepare_planes(planes), focus_N, max_coc_N, aperture))`
+  (dofsynth.render.look): with a highlight boost, each plane's colour is boosted before the
+  blur and the result mapped back by the exact inverse;
+- `aif.png`: the same with no blur, `restore(composite(prepare_planes(planes)))`, so a target
+  equals it wherever nothing that reaches a pixel is blurred;
+- `depth.exr`, `cover.png`: the disparity map and the two coverages;
+- with the recipe's `render.members`: `coc.N.exr`, `layer.K.exr` (each plane before blur and
+  boost), `dp.N.left.png` / `dp.N.right.png` (the left and right halves of the aperture: a
+  dual-pixel pair; `dof.N.png` is then their area-weighted sum, a two-cell sub-aperture render).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, replace
+from dataclasses import replace
 
 import numpy as np
 
 from dofsynth.assets import AssetLibrary
-from dofsynth.color import linear_to_srgb
 from dofsynth.compose import scene_layers
-from dofsynth.highlight import boost, unboost
-from dofsynth.record import (encode_alphas, encode_coc, encode_depth, encode_layer, encode_png8, encode_record,
-                             encode_srgb_png_planar,
-                             encode_srgb_png_rows, sample_record)
-from dofsynth.render import render_planes
+from dofsynth.record import held_members, unknown_options
+from dofsynth.render.look import prepare_planes, render_look, restore
 from dofsynth.render.subaperture import halves
 from dofsynth.scene import Scene, Target
 
 
+class SampleRender:
+    """One scene being rendered: what the member writers read. `planes` (back to front) are
+    the composed planes, prepared for the blur in place on first use of `target` / `view` /
+    `aif_rows` (before that, as placed: what `before_blur` members see); `disparity` (H, W)
+    float32; `target(n)` and `view(n, side)` planar (3, H, W) renders, restored."""
+
+    def __init__(self, scene: Scene, library: AssetLibrary):
+        self.scene, self.look = scene, scene.options.look
+        self._layers = scene_layers(scene, library)
+        self.planes = list(self._layers.planes)
+        self.disparity = self._layers.disparity
+        self._blur_planes = None
+        self._views = None  # (n, [left, right] unrestored, area shares) of the last dual-pixel target
+
+    def _prepared(self) -> list:
+        if self._blur_planes is None:
+            self._blur_planes = prepare_planes(self.planes, self.look)
+        return self._blur_planes
+
+    def aif_rows(self, r0: int, r1: int) -> np.ndarray:
+        """Rows r0:r1 of the all-in-focus composite of the prepared planes, restored (linear)."""
+        if self.look.linear_light:
+            self._prepared()  # boosted in place: the composite of the boosted planes, mapped back
+            return restore(self._layers.aif_rows(r0, r1), self.look, axis=-1)
+        return self._layers.aif_rows(r0, r1)  # the naive baseline stores the linear composite
+
+    def _render(self, n: int, aperture=None) -> np.ndarray:
+        t = self.scene.targets[n]
+        return render_look(self._prepared(), t.focus, t.max_coc, aperture or self.scene.aperture, self.look)
+
+    def _dual(self, n: int) -> list:
+        if self._views is None or self._views[0] != n:
+            (left, wl), (right, wr) = halves(self.scene.aperture)
+            self._views = (n, [self._render(n, left), self._render(n, right)], (wl, wr))
+        return self._views
+
+    def target(self, n: int) -> np.ndarray:
+        """Target n (3, H, W), restored; with dual-pixel views the area-weighted sum of the two."""
+        if "dual_pixel" in self.scene.options.members:
+            _, (left, right), (wl, wr) = self._dual(n)
+            img = left * np.float32(wl) + right * np.float32(wr)
+        else:
+            img = self._render(n)
+        return restore(img, self.look)
+
+    def view(self, n: int, side: str) -> np.ndarray:
+        """Target n through the left or right half of the aperture (3, H, W), restored."""
+        _, views, _ = self._dual(n)
+        return restore(views[("left", "right").index(side)].copy(), self.look)
+
+
 def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
     """Render one scene to its tar members {suffix: bytes} (see the module docstring)."""
-    layers = scene_layers(scene, library)
-    planes = list(layers.planes)
-    extra = scene.options.members
-    optional = {}
-    if "layers" in extra:  # before the highlight boost, which works on the planes in place
-        for k, p in enumerate(planes):
-            optional[f"layer.{k}.exr"] = encode_layer(p.rgb, p.alpha, p.disparity)
-    hl = asdict(scene.options.highlight) if scene.options.highlight is not None else None
-    if hl is not None:  # the planes are this call's own fresh arrays: boost in place
-        for i, p in enumerate(planes):
-            rgb = p.rgb
-            if i > 0:  # a cutout's colour is 0 outside its alpha box
-                y0, y1, x0, x1 = p.box
-                if y1 <= y0 or x1 <= x0:
-                    continue
-                rgb = rgb[y0:y1, x0:x1]
-            boost(rgb, **hl, out=rgb)
-    def aif_rows(r0: int, r1: int) -> np.ndarray:  # the composite of the (boosted) planes, mapped back
-        rows = layers.aif_rows(r0, r1)
-        return rows if hl is None else unboost(rows, **hl, out=rows)
-
-    # Encode the un-blurred members first and drop their arrays (peak memory at large sizes).
-    members: dict[str, bytes] = {
-        "aif.png": encode_srgb_png_rows(aif_rows, *layers.disparity.shape),
-        "depth.exr": encode_depth(layers.disparity),
-        "cover.png": encode_alphas(planes[2].alpha, planes[1].alpha),
-    }
-    if "coc" in extra:
-        for n, t in enumerate(scene.targets):
-            optional[f"coc.{n}.exr"] = encode_coc(layers.disparity, t.focus, t.max_coc)
-    members.update(optional)
-    del layers, aif_rows, optional
-    linear_light = scene.options.linear_light
-    if not linear_light:  # the naive baseline: blur sRGB-encoded values, store them as they are
-        planes = [replace(p, rgb=linear_to_srgb(p.rgb)) for p in planes]
-    for n, t in enumerate(scene.targets):
-        if linear_light and "dual_pixel" in extra:  # the two half-aperture views; the target is their sum
-            (left, wl), (right, wr) = halves(scene.aperture)
-            views = [_render_target(planes, t, scene, left), _render_target(planes, t, scene, right)]
-            img = views[0] * np.float32(wl) + views[1] * np.float32(wr)
-            for side, view in zip(("left", "right"), views):
-                if hl is not None:
-                    unboost(view, **hl, out=view, axis=0)
-                members[f"dp.{n}.{side}.png"] = encode_srgb_png_planar(view)
-            del views
-            if hl is not None:
-                unboost(img, **hl, out=img, axis=0)
-            members[f"dof.{n}.png"] = encode_srgb_png_planar(img)
-        elif linear_light:  # planar (3, H, W): encoded in row blocks, no interleaved frame copy
-            img = _render_target(planes, t, scene)
-            if hl is not None:
-                unboost(img, **hl, out=img, axis=0)
-            members[f"dof.{n}.png"] = encode_srgb_png_planar(img)
-        else:
-            img = render_planes(planes, float(t.focus), float(t.max_coc), scene.aperture, **scene.options.render_kw())
-            members[f"dof.{n}.png"] = encode_png8(np.clip(img, 0.0, 1.0))
-        del img
-    members["json"] = encode_record(sample_record(scene))
-    return members
-
-
-def _render_target(planes, t: Target, scene: Scene, aperture=None):
-    """Target t, planar (3, H, W) linear, through `aperture` (default the scene's; a half of it
-    for a dual-pixel view); with longitudinal chromatic aberration each channel is the render
-    at its own CoC scale (max_coc * chromatic[ch]), three renders instead of one."""
-    scales, aperture = scene.options.chromatic, aperture or scene.aperture
-    kw = scene.options.render_kw()
-    img = render_planes(planes, float(t.focus), float(t.max_coc) * scales[1], aperture, planar=True, **kw)
-    for ch in (0, 2):
-        if scales[ch] != scales[1]:
-            img[ch] = render_planes(planes, float(t.focus), float(t.max_coc) * scales[ch], aperture, planar=True,
-                                    **kw)[ch]
-    return img
+    unknown = unknown_options(scene.options.members)
+    if unknown:
+        raise ValueError(f"{scene.key}: members {unknown} are not in the member table (dofsynth.record.MEMBERS)")
+    s = SampleRender(scene, library)
+    held = held_members(scene.options.members)
+    n_targets = len(scene.targets)
+    out: dict[str, bytes] = {}
+    # before-blur members first; then the sample's own and per-plane ones; then target by target
+    # (a target's renders are dropped before the next one: peak memory at large sizes)
+    order = sorted(held, key=lambda m: (not m.before_blur, m.per == "target"))
+    for m in order:
+        if m.per != "target":
+            for i, name in enumerate(m.names(n_targets)):
+                out[name] = m.write(s, i if m.per == "plane" else None)
+    per_target = [m for m in order if m.per == "target"]
+    for n in range(n_targets):
+        for m in per_target:
+            out[m.names(n_targets)[n]] = m.write(s, n)
+    return out
 
 
 def focus_sweep(scene: Scene, library: AssetLibrary, focuses, max_coc: float | None = None) -> dict[str, bytes]:

@@ -14,7 +14,7 @@ background everywhere; the front plane f0 >= f1 + min_gap.
 
 Placement: an object's placed part is its asset's `extent` (the alpha's bounding box); it is
 resized by `scale` (output px per source px, at most `assets.max_upscale`) to
-`dofsynth.placement.placed_size(...)` and its top-left corner is put at integer (x, y) of the
+`dofsynth.assets.placement.placed_size(...)` and its top-left corner is put at integer (x, y) of the
 output frame (may be negative), keeping at least `min_in_frame` of its area inside the frame.
 A matte cut by its photo's border (a portrait cut at the chest: `Asset.cut`) is placed with
 each cut side on or beyond the matching frame edge (`ObjectParams.anchored`, after the flip);
@@ -29,13 +29,12 @@ import os
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
-import numpy as np
 
 from dofsynth.assets import Asset, AssetLibrary
-from dofsynth.assets.fit import largest_crop
+from dofsynth.assets.placement import ObjectParams, draw_crop, draw_object, visible_shares
 from dofsynth.optics.aperture import APERTURES, Aperture, aperture_from_dict
-from dofsynth.placement import ObjectParams, draw_object, visible_shares
-from dofsynth.recipe import Recipe, recipe_lens
+from dofsynth.recipe import Recipe, recipe_lens, recipe_look
+from dofsynth.render.look import Look
 from dofsynth.rng import draw_uniform, sample_key, sample_rng, sample_seed
 
 @dataclass(frozen=True)
@@ -68,35 +67,9 @@ class Target:
 
 
 @dataclass(frozen=True)
-class Highlight:
-    threshold: float
-    gain: float
-    power: float
-
-
-@dataclass(frozen=True)
 class Options:
-    highlight: Highlight | None
-    linear_light: bool
-    members: tuple[str, ...] = ()   # optional members written: "coc", "layers" (recipe render.members)
-    chromatic: tuple[float, float, float] = (1.0, 1.0, 1.0)  # CoC scale per colour channel (R, G, B)
-    method: str = "layered"         # dofsynth.render.METHODS: how the targets are rendered
-    cells: int = 1                  # subaperture: n x n aperture cells
-    cat_eye: float = 0.0            # subaperture, exact: optical vignetting strength
-
-    def render_kw(self) -> dict:
-        """The render_planes keywords of these options."""
-        kw = {"method": self.method}
-        if self.method == "subaperture":
-            kw["cells"] = self.cells
-        if self.cat_eye:
-            kw["cat_eye"] = self.cat_eye
-        return kw
-
-
-def _method_dict(o: Options) -> dict:
-    """The record's method keys: absent for the layered method (older records stay as they were)."""
-    return {} if o.method == "layered" else o.render_kw()
+    look: Look = Look()             # how the targets are rendered (dofsynth.render.look)
+    members: tuple[str, ...] = ()   # optional members written (recipe render.members, dofsynth.members)
 
 
 @dataclass(frozen=True)
@@ -125,17 +98,13 @@ class Scene:
             "front": _object_dict(self.front), "middle": _object_dict(self.middle),
             "targets": [t.to_dict() for t in self.targets],
             "aperture": self.aperture.to_dict(),
-            "options": {"highlight": asdict(self.options.highlight) if self.options.highlight else None,
-                        "linear_light": self.options.linear_light, "members": list(self.options.members),
-                        **({"chromatic": list(self.options.chromatic)} if self.options.chromatic != (1.0, 1.0, 1.0) else {}),
-                        **_method_dict(self.options)},
+            "options": {**self.options.look.to_dict(), "members": list(self.options.members)},
             "excluded": list(self.excluded),
         }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Scene":
         """Inverse of `to_dict`; extra record keys (schema_version, renderer, ...) are ignored."""
-        hl = d["options"].get("highlight")
         return cls(
             key=d["key"], split=d["split"], index=int(d["index"]), seed=tuple(int(s) for s in d["seed"]),
             size=(int(d["size"][0]), int(d["size"][1])),
@@ -144,12 +113,7 @@ class Scene:
             front=_object(d["front"]), middle=_object(d["middle"]),
             targets=tuple(Target(**t) for t in d["targets"]),
             aperture=aperture_from_dict(d["aperture"]),
-            options=Options(highlight=Highlight(**hl) if hl else None,
-                            linear_light=bool(d["options"].get("linear_light", True)),
-                            members=tuple(d["options"].get("members", ())),
-                            chromatic=tuple(float(v) for v in d["options"].get("chromatic", (1.0, 1.0, 1.0))),
-                            method=d["options"].get("method", "layered"), cells=int(d["options"].get("cells", 1)),
-                            cat_eye=float(d["options"].get("cat_eye", 0.0))),
+            options=Options(look=Look.from_dict(d["options"]), members=tuple(d["options"].get("members", ()))),
             excluded=tuple(d.get("excluded", ())),
         )
 
@@ -161,26 +125,6 @@ def _object_dict(o: ObjectParams) -> dict[str, Any]:
 
 def _object(d: dict[str, Any]) -> ObjectParams:
     return ObjectParams(**{**d, "anchored": tuple(d.get("anchored", ())), "rejected": tuple(d.get("rejected", ()))})
-
-
-def background_disparity(mode: str, b0: float, b1: float, direction: str | None, h: int, w: int) -> np.ndarray:
-    """(H, W) float32 disparity of the background. "flat": b0 everywhere (0 in sampled scenes);
-    "ramp" + "horizontal": b0 at the left pixel column, linear to b1 at the right column;
-    "ramp" + "vertical": b0 at the bottom pixel row, linear to b1 at the top row. (A ramp of
-    h = 1 or w = 1 is its row or column: what a broadcast plane holds.)"""
-    if mode == "flat":
-        return np.full((h, w), b0, dtype=np.float32)
-    if mode != "ramp":
-        raise ValueError(f"background mode must be 'flat' or 'ramp', got {mode!r}")
-    if direction == "horizontal":
-        t = np.linspace(0.0, 1.0, w) if w > 1 else np.zeros(1)
-        row = b0 + (b1 - b0) * t
-        return np.ascontiguousarray(np.broadcast_to(row[None, :], (h, w)), dtype=np.float32)
-    if direction == "vertical":
-        t = np.linspace(1.0, 0.0, h) if h > 1 else np.zeros(1)  # 1 at the top row, 0 at the bottom
-        col = b0 + (b1 - b0) * t
-        return np.ascontiguousarray(np.broadcast_to(col[:, None], (h, w)), dtype=np.float32)
-    raise ValueError(f"ramp direction must be 'horizontal' or 'vertical', got {direction!r}")
 
 
 def _ref(asset: Asset, recipe: Recipe, library: AssetLibrary) -> AssetRef:
@@ -237,14 +181,8 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int, 
 
     # 1. background asset, crop and flip
     bg = bgs[int(rng.integers(len(bgs)))]
-    sw, sh = bg.size
-    cw_max, ch_max = largest_crop(bg.size, (H, W))
+    (cx, cy, cw, ch), bflip = draw_crop(rng, bg, recipe)
     br, fr = recipe.scene.background, recipe.scene.foreground
-    need = W / (recipe.assets.max_upscale * cw_max)  # the least crop magnified no more than max_upscale
-    c = float(rng.uniform(max(br.crop[0], need), max(br.crop[1], need)))
-    cw, ch = max(1, min(sw, round(cw_max * c))), max(1, min(sh, round(ch_max * c)))
-    cx, cy = int(rng.integers(0, sw - cw + 1)), int(rng.integers(0, sh - ch + 1))
-    bflip = bool(rng.random() < fr.flip_share)
 
     # 2. background depth
     if rng.random() < br.flat_share:
@@ -297,13 +235,7 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int, 
     # 6. aperture and options
     ar = recipe.render.aperture
     aperture = APERTURES[ar.kind].from_rules(ar, rng)
-    hr = recipe.render.highlight
-    linear = recipe.render.linear_light  # highlights are light: the naive (sRGB) baseline has none
-    options = Options(highlight=Highlight(hr.threshold, hr.gain, hr.power) if hr.enabled and linear else None,
-                      linear_light=linear, members=tuple(recipe.render.members),
-                      chromatic=tuple(float(v) for v in recipe.render.chromatic), method=recipe.render.method,
-                      cells=recipe.render.cells if recipe.render.method == "subaperture" else 1,
-                      cat_eye=recipe.render.cat_eye)
+    options = Options(look=recipe_look(recipe), members=tuple(recipe.render.members))
 
     return Scene(
         key=sample_key(split, index), split=split, index=int(index), seed=seed, size=(H, W),

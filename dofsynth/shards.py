@@ -70,7 +70,8 @@ class ShardInfo:
     def from_dict(cls, d: dict) -> "ShardInfo":
         return cls(split=str(d["split"]), index=int(d["index"]), name=str(d["name"]),
                    first_index=int(d["first_index"]), samples=int(d["samples"]),
-                   sha256=str(d["sha256"]), bytes=int(d["bytes"]), usage=d.get("usage"))
+                   sha256=None if d["sha256"] is None else str(d["sha256"]), bytes=int(d["bytes"]),
+                   usage=d.get("usage"))
 
 
 def shard_name(split: str, shard_index: int) -> str:
@@ -203,6 +204,21 @@ def _key_member(name: str) -> tuple[str, str]:
     return key, member
 
 
+def _entries(path: Path) -> Iterator[tuple[str, str, tarfile.TarInfo, tarfile.TarFile]]:
+    """(key, suffix, header, open tar) of every regular member of a shard in file order, then
+    the end-of-archive check: the one place a shard is opened for reading. `ShardError` names a
+    bad file."""
+    try:
+        with tarfile.open(path, "r:") as tar:
+            for info in tar:
+                if info.isfile():
+                    yield (*_key_member(info.name), info, tar)
+            end = tar.offset
+    except (tarfile.TarError, EOFError, OSError) as exc:
+        raise ShardError(f"{path}: unreadable tar ({exc})") from exc
+    _check_end(path, end)
+
+
 def iter_members(path: str | os.PathLike, keys=None, data: bool = True,
                  suffix: str | None = None) -> Iterator[tuple[str, str, bytes | None]]:
     """(key, suffix, bytes) of every regular member of a shard in file order; with `keys`,
@@ -210,24 +226,18 @@ def iter_members(path: str | os.PathLike, keys=None, data: bool = True,
     others' data is skipped, not read); with `data=False`, None instead of the bytes (headers
     only). `ShardError` names a bad file."""
     path = Path(path)
-    try:
-        with tarfile.open(path, "r:") as tar:
-            for info in tar:
-                if not info.isfile():
-                    continue
-                key, member = _key_member(info.name)
-                if (keys is not None and key not in keys) or (suffix is not None and member != suffix):
-                    continue
-                blob = None
-                if data:
-                    blob = tar.extractfile(info).read()
-                    if len(blob) != info.size:
-                        raise ShardError(f"{path}: member {info.name} is truncated")
-                yield key, member, blob
-            end = tar.offset
-    except (tarfile.TarError, EOFError, OSError) as exc:
-        raise ShardError(f"{path}: unreadable tar ({exc})") from exc
-    _check_end(path, end)
+    for key, member, info, tar in _entries(path):
+        if (keys is not None and key not in keys) or (suffix is not None and member != suffix):
+            continue
+        blob = None
+        if data:
+            try:
+                blob = tar.extractfile(info).read()
+            except (tarfile.TarError, EOFError, OSError) as exc:
+                raise ShardError(f"{path}: unreadable tar ({exc})") from exc
+            if len(blob) != info.size:
+                raise ShardError(f"{path}: member {info.name} is truncated")
+        yield key, member, blob
 
 
 def read_shard(path: str | os.PathLike, keys=None) -> Iterator[tuple[str, dict[str, bytes]]]:
@@ -255,16 +265,9 @@ def shard_keys(path: str | os.PathLike) -> list[str]:
 def member_index(path: str | os.PathLike) -> dict[str, dict[str, tuple[int, int]]]:
     """{key: {suffix: (byte offset of the data, size)}} of a shard, from its headers only: for
     random access to samples (`read_members`). `ShardError` names a bad file."""
-    path = Path(path)
     index: dict[str, dict[str, tuple[int, int]]] = {}
-    try:
-        with tarfile.open(path, "r:") as tar:
-            for info in tar:
-                if info.isfile():
-                    key, member = _key_member(info.name)
-                    index.setdefault(key, {})[member] = (info.offset_data, info.size)
-    except (tarfile.TarError, EOFError, OSError) as exc:
-        raise ShardError(f"{path}: unreadable tar ({exc})") from exc
+    for key, member, info, _ in _entries(Path(path)):
+        index.setdefault(key, {})[member] = (info.offset_data, info.size)
     return index
 
 

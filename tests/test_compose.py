@@ -9,8 +9,9 @@ from dofsynth.image import area_halve, premultiply, pyramid_level
 from dofsynth.image import resize
 from dofsynth.recipe import load_recipe
 from dofsynth.render.planes import validate_planes
-from dofsynth.placement import ObjectParams, placed_size
-from dofsynth.scene import background_disparity, sample_scene
+from dofsynth.assets.placement import ObjectParams, placed_size
+from dofsynth.render.planes import background_disparity
+from dofsynth.scene import sample_scene
 
 
 

@@ -280,7 +280,7 @@ def _train_setup(tmp_path, **train):
 
 
 def test_a_nan_shard_stops_training_by_name_and_the_checkpoint_stays(tmp_path):
-    from dofsynth.record import encode_depth
+    from dofsynth.codecs import encode_depth
     from dofsynth.shards import read_shard, write_shard
 
     data, cfg, run = _train_setup(tmp_path, max_steps=4, checkpoint_interval=2, eval_interval=0)

@@ -15,7 +15,7 @@ from dofsynth.recipe import load_recipe, recipe_from_text
 from dofsynth.generate import OutputNotEmptyError, ResumeError, generate, generate_shard, plan_split, render_one
 from dofsynth.generate.plan import shard_task
 from dofsynth.generate.worker import library_for
-from dofsynth.locks import OutputInUseError, OutputLock
+from dofsynth.generate.locks import OutputInUseError, OutputLock
 from dofsynth.manifest import load_manifest
 from dofsynth.shards import read_shard
 
@@ -308,7 +308,7 @@ def test_shard_range_resume_after_kill_and_refusals(recipe, reference, tmp_path,
 
 
 def test_concurrent_disjoint_ranges_share_out_but_not_with_a_whole_run(recipe, tmp_path):
-    from dofsynth.locks import RangeLock
+    from dofsynth.generate.locks import RangeLock
 
     out = tmp_path / "shared"
     with RangeLock(out, 0, 2):       # a running --shards 0:2 (say on another node)

@@ -1,4 +1,4 @@
-"""The highlight boost (dofsynth.highlight): its formula, its exact inverse, hues kept, in-focus
+"""The highlight boost (dofsynth.render.highlight): its formula, its exact inverse, hues kept, in-focus
 pixels returned as they were, and point highlights turned into visible discs."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dofsynth.color import linear_to_srgb8, srgb_to_linear
-from dofsynth.highlight import KNOTS, boost, srgb_decode_exact, unboost
+from dofsynth.render.highlight import KNOTS, boost, srgb_decode_exact, unboost
 from dofsynth.optics import Polygon, kernel
 from dofsynth.render import Plane, render_planes
 

@@ -9,13 +9,12 @@ from pathlib import Path
 PKG = Path(__file__).resolve().parents[1] / "dofsynth"
 # Every top-level module or stage package, earliest first: a module may import its own stage
 # and earlier ones only.
-STAGES = ["dofsynth", "dofsynth.config", "dofsynth.files", "dofsynth.progress", "dofsynth.shipped", "dofsynth.rng", "dofsynth.color", "dofsynth.highlight",
-          "dofsynth.image",
-          "dofsynth.io", "dofsynth.optics", "dofsynth.recipe", "dofsynth.assets", "dofsynth.placement", "dofsynth.scene",
-          "dofsynth.render", "dofsynth.compose", "dofsynth.record", "dofsynth.sample", "dofsynth.shards",
-          "dofsynth.manifest", "dofsynth.locks", "dofsynth.generate", "dofsynth.qa", "dofsynth.train",
-          "dofsynth.commands", "dofsynth.cli", "dofsynth.__main__"]
-FOLDERS = ("assets", "optics", "render", "generate", "qa", "train", "commands")
+STAGES = ["dofsynth", "dofsynth.config", "dofsynth.files", "dofsynth.progress", "dofsynth.shipped", "dofsynth.rng",
+          "dofsynth.color", "dofsynth.image", "dofsynth.io", "dofsynth.optics", "dofsynth.codecs", "dofsynth.render",
+          "dofsynth.record", "dofsynth.recipe", "dofsynth.assets", "dofsynth.scene", "dofsynth.compose",
+          "dofsynth.sample", "dofsynth.shards", "dofsynth.manifest", "dofsynth.generate", "dofsynth.qa",
+          "dofsynth.train", "dofsynth.commands", "dofsynth.cli", "dofsynth.__main__"]
+FOLDERS = ("assets", "optics", "render", "manifest", "generate", "qa", "train", "commands")
 
 
 def _modules() -> dict[str, Path]:

@@ -4,15 +4,17 @@ from types import SimpleNamespace
 
 import pytest
 
-from dofsynth.manifest import (ManifestError, append_progress, build_manifest, canonical_json, load_manifest,
-                               manifest_shard_infos, read_progress, save_summary, start_progress, summary,
+from dofsynth.files import canonical_json
+from dofsynth.manifest import (ManifestError, build_manifest, load_manifest, manifest_shard_infos, save_summary, summary,
                                write_manifest)
+from dofsynth.manifest.progress import append_progress, read_progress, start_progress
 from dofsynth.shards import ShardInfo
 
 
 def _recipe():
     return SimpleNamespace(text="name = 'x'\n", sha256="ab" * 32, path="recipes/x.toml", name="x",
-                           samples=SimpleNamespace(count=lambda s: {"train": 5, "test": 2}[s]))
+                           samples=SimpleNamespace(count=lambda s: {"train": 5, "test": 2}[s]),
+                           render=SimpleNamespace(method="layered", members=()))
 
 
 def _infos():
@@ -85,7 +87,8 @@ def test_progress_survives_a_torn_last_line(tmp_path):
 
 
 # ---- partial manifests ---------------------------------------------------------------------
-from dofsynth.manifest import build_part, load_part, merge_parts, part_name, write_part  # noqa: E402
+from dofsynth.manifest.names import part_name  # noqa: E402
+from dofsynth.manifest.parts import build_part, load_part, merge_parts, write_part  # noqa: E402
 
 _PLAN = {"splits": ["train", "test"], "limits": {"train": None, "test": None}, "shards": 4,
          "split_shards": {"train": 3, "test": 1}}

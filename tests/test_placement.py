@@ -11,7 +11,7 @@ from dofsynth.assets.decode import cut_sides
 from dofsynth.compose import scene_layers
 from dofsynth.config import ConfigError
 from dofsynth.recipe import load_recipe
-from dofsynth.placement import placed_size
+from dofsynth.assets.placement import placed_size
 from dofsynth.scene import sample_scene
 
 from conftest import noise_rgb, write_png

@@ -9,15 +9,16 @@ import pytest
 
 from dofsynth.assets import build_library
 from dofsynth.color import linear_to_srgb8, srgb_to_linear
-from dofsynth.highlight import boost, unboost
+from dofsynth.render.highlight import boost, unboost
 from dofsynth.image import to_uint8
 from dofsynth.compose import SceneLayers, scene_layers
 from dofsynth.recipe import load_recipe
 from dofsynth.io import decode_image, encode_png
 from dofsynth.render.planes import Plane
-from dofsynth.record import (RENDERER_ID, SCHEMA_VERSION, SampleDecodeError, decode_sample, encode_cover, encode_depth,
-                             encode_png8,
-                             encode_record, encode_srgb_png, encode_srgb_png_planar)
+from dofsynth.codecs import (SCHEMA_VERSION, encode_alphas, encode_depth, encode_png8, encode_srgb_png_planar,
+                             encode_srgb_png_rows)
+from dofsynth.record import SampleDecodeError, decode_sample, encode_record
+from dofsynth.render import METHODS
 from dofsynth.sample import render_sample
 from dofsynth.render import render_planes
 from dofsynth.optics import aperture_from_dict
@@ -39,9 +40,9 @@ def test_members_and_record(setup):
     recipe, _, scenes, samples = setup
     for scene, m in zip(scenes, samples):
         n = len(scene.targets)
-        assert list(m) == ["aif.png", "depth.exr", "cover.png"] + [f"dof.{i}.png" for i in range(n)] + ["json"]
+        assert set(m) == {"aif.png", "depth.exr", "cover.png", "json"} | {f"dof.{i}.png" for i in range(n)}
         rec = json.loads(m["json"])
-        assert rec["schema_version"] == SCHEMA_VERSION == 3 and rec["renderer"] == RENDERER_ID and rec["dofsynth_version"] == "0.1.0"
+        assert rec["schema_version"] == SCHEMA_VERSION == 3 and rec["renderer"] == METHODS["layered"].renderer_id and rec["dofsynth_version"] == "0.1.0"
         assert rec["key"] == scene.key and list(rec) == sorted(rec)
         assert {k: v for k, v in rec.items() if k not in ("schema_version", "renderer", "dofsynth_version")} == \
             json.loads(json.dumps(scene.to_dict()))
@@ -56,7 +57,7 @@ def test_pixels_are_what_the_format_says(setup):
     assert d["aif"].shape == (h, w, 3) and d["depth"].shape == (h, w) and d["cover"].shape == (h, w, 2)
     assert d["depth"].dtype == np.float32 and np.array_equal(d["depth"], layers.disparity)
     assert np.array_equal(to_uint8(d["cover"]), to_uint8(layers.cover))
-    hl = vars(scene.options.highlight)
+    hl = vars(scene.options.look.highlight)
     planes = [Plane(boost(p.rgb, **hl), p.alpha, p.disparity) for p in layers.planes]
     boosted = SceneLayers(planes, layers.disparity)
     assert np.array_equal(to_uint8(d["aif"]), linear_to_srgb8(unboost(boosted.aif, **hl)))
@@ -71,7 +72,7 @@ def test_every_member_round_trips_to_the_same_bytes(setup):
         d = decode_sample(m)
         assert encode_png8(to_uint8(d["aif"])) == m["aif.png"]
         assert encode_depth(d["depth"]) == m["depth.exr"]
-        assert encode_cover(d["cover"]) == m["cover.png"]
+        assert encode_alphas(d["cover"][..., 0], d["cover"][..., 1]) == m["cover.png"]
         for i, img in enumerate(d["dof"]):
             assert encode_png8(to_uint8(img)) == m[f"dof.{i}.png"]
         assert encode_record(d["record"]) == m["json"]
@@ -94,7 +95,7 @@ def test_where_nothing_is_blurred_every_target_is_the_all_in_focus_image(setup):
         assert all(still[f"dof.{i}.png"] == still["aif.png"] for i in range(len(scene.targets)))
         # The boost undone: where no plane is partly transparent the all-in-focus image is the
         # plain composite (to float rounding); at soft edges it is composited in boosted light.
-        plain = decode_sample(render_sample(replace(scene, options=replace(scene.options, highlight=None)), library))
+        plain = decode_sample(render_sample(replace(scene, options=replace(scene.options, look=replace(scene.options.look, highlight=None))), library))
         d = decode_sample(samples[scenes.index(scene)])
         solid = np.all((d["cover"] == 0) | (d["cover"] == 1), axis=2)
         assert np.abs(d["aif"] - plain["aif"])[solid].max() <= 1.5 / 255
@@ -152,7 +153,7 @@ def test_image_members_say_srgb_and_the_depth_member_says_what_it_is(setup):
 def test_shards_of_older_schemas_still_decode(setup):
     """Before schema 3 the depth member's channel was "Z"."""
     from dofsynth.io import encode_exr
-    from dofsynth.record import decode_depth
+    from dofsynth.codecs import decode_depth
 
     m = dict(setup[3][0])
     depth = decode_sample(m)["depth"]
@@ -179,18 +180,13 @@ def test_record_json_is_canonical():
     assert a == b'{"a":[1,2],"b":0.5,"c":[0.25]}\n'
     with pytest.raises(ValueError, match="non-finite"):
         encode_record({"x": float("nan")})
-    with pytest.raises(ValueError, match=r"\(H, W, 2\)"):
-        encode_cover(np.zeros((4, 4, 3)))
 
 
 def test_cover_from_alphas_is_the_cover_png(setup):
-    from dofsynth.record import encode_alphas
-
     g = np.random.default_rng(5)
     front, middle = g.random((2, 30, 40), dtype=np.float32)
     front[:5] = 0.0
     png = encode_alphas(front, middle)
-    assert png == encode_cover(np.stack([front, middle], axis=2))
     import cv2
 
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)[:, :, ::-1]
@@ -206,7 +202,11 @@ def test_planar_srgb_png_is_the_same_bytes():
     for h, w in ((150, 37), (64, 5), (1, 3)):
         x = g.random((3, h, w), dtype=np.float32) * 1.4 - 0.2  # out of [0, 1] too
         x[1, 0, 0], x[2, -1, -1] = np.nan, np.inf
-        assert encode_srgb_png_planar(x) == encode_srgb_png(np.ascontiguousarray(x.transpose(1, 2, 0)))
+        hwc = np.ascontiguousarray(x.transpose(1, 2, 0))
+        png = encode_srgb_png_rows(lambda r0, r1: hwc[r0:r1], h, w)
+        assert encode_srgb_png_planar(x) == png
+        codes = decode_image(png, "x.png")  # float RGB in [0, 1]: the member's sRGB codes / 255
+        assert np.array_equal(np.round(codes * 255).astype(np.uint8), linear_to_srgb8(hwc))  # RGB order, every row
     with pytest.raises(ValueError, match="3, H, W"):
         encode_srgb_png_planar(np.zeros((4, 4, 3), np.float32))
 

@@ -6,7 +6,7 @@ import pytest
 from dofsynth.assets import build_library
 from dofsynth.recipe import load_recipe
 from dofsynth.rng import SPLIT_ID
-from dofsynth.placement import in_frame_share, placed_size
+from dofsynth.assets.placement import in_frame_share, placed_size
 from dofsynth.scene import Scene, sample_scene
 
 

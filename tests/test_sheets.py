@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from dofsynth.image import resize, to_rgb8
+from dofsynth.manifest import recipe_from_manifest
 from dofsynth.qa import dataset as ds
 from dofsynth.qa import draw, html, sheets
 from dofsynth.scene import Scene
@@ -182,7 +183,7 @@ def test_focus_sweep_at_a_target_focus_is_that_target(smoke_set):
     from dofsynth.assets import build_library
 
     m = ds.load(smoke_set)
-    recipe = ds.recipe_from_manifest(m, smoke_set)
+    recipe = recipe_from_manifest(m, smoke_set)
     library = build_library(recipe)
     key = ds.split_keys(m, "test")[1]
     members = ds.read_members_many(smoke_set, "test", [key])[key]

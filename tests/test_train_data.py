@@ -11,11 +11,12 @@ import pytest
 import torch
 
 from dofsynth.io import decode_image, encode_png
-from dofsynth.record import decode_depth, encode_depth
+from dofsynth.codecs import decode_depth, encode_depth
 from dofsynth.manifest import assemble_manifest, write_manifest
+from dofsynth.record import format_description
 from dofsynth.shards import ShardInfo, shard_name, write_shard
 from dofsynth.train.config import Config, from_dict
-from dofsynth.train.data import (DofShards, area_downsample, find_segments, find_shards, make_loader, raw_samples,
+from dofsynth.train.data import (DofShards, area_downsample, find_segments, make_loader, raw_samples,
                                  resolve,
                                  sample_rng, training_item)
 
@@ -102,7 +103,7 @@ def make_dataset(out: Path, n_train: int = 8, n_test: int = 2, size: int = 32, p
     text = (f'name = "tiny"\nseed = 0\nsize = {size}\nsamples = {{ train = {n_train}, test = {n_test} }}\n'
             '[assets]\nbackgrounds = "builtin"\nforegrounds = "builtin"\n[focus]\nmax_coc = [2.0, 4.0]\n')
     recipe = {"text": text, "sha256": "0" * 64, "path": None, "name": "tiny"}
-    write_manifest(out, assemble_manifest(recipe, {"train": n_train, "test": n_test}, shards))
+    write_manifest(out, assemble_manifest(recipe, {"train": n_train, "test": n_test}, shards, format_description()))
     return out
 
 
@@ -137,7 +138,7 @@ def test_items_have_the_documented_shapes_ranges_and_exact_low_res(data_dir):
 
 
 def _raw(data_dir, index=0):
-    return next(raw_samples(find_shards(data_dir, "train")))
+    return next(raw_samples(find_segments(data_dir, "train"), "train"))
 
 
 def test_target_choice_crop_alignment_and_the_target_is_never_corrupted(data_dir):
@@ -222,9 +223,9 @@ def test_the_validation_share_is_held_out_of_training(tmp_path):
 
 def test_missing_data_names_the_folder_and_the_split(tmp_path, data_dir):
     with pytest.raises(FileNotFoundError, match=f"{tmp_path}.*no manifest"):
-        find_shards(tmp_path, "train")
+        find_segments(tmp_path, "train")
     with pytest.raises(FileNotFoundError, match="has no val split"):
-        find_shards(data_dir, "val")
+        find_segments(data_dir, "val")
 
 
 def test_area_downsample_is_the_block_mean():

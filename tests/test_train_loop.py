@@ -284,18 +284,18 @@ def test_config_round_trip_and_refusals(tmp_path):
 def test_two_steps_on_the_generators_smoke_data(tmp_path, smoke_set):
     from dofsynth.train.augment import layers_from_record
     from dofsynth.io import decode_image
-    from dofsynth.record import decode_depth
-    from dofsynth.train.data import find_shards, peek_records, raw_samples
+    from dofsynth.codecs import decode_depth
+    from dofsynth.train.data import find_segments, raw_samples
 
     data = smoke_set
     # the corruption's model of the layers agrees with the generator's depth maps
-    raw = next(raw_samples(find_shards(data, "train")))
+    raw = next(raw_samples(find_segments(data, "train"), "train"))
     record, depth, cover = json.loads(raw["json"]), decode_depth(raw["depth.exr"]), decode_image(raw["cover.png"])
     layers = layers_from_record(record, cover)
     free = (cover[:, :, 0] == 0) & (cover[:, :, 1] == 0)
     assert np.abs(depth - layers.background)[free].max() < 1e-5
     assert np.all(depth[layers.planes[1][0]] == np.float32(record["front"]["disparity"]))
-    assert peek_records(find_shards(data, "train")[0])[0]["size"] == [64, 64]
+    assert json.loads(raw["json"])["size"] == [64, 64]
     run = tmp_path / "run"
     assert main(["train", str(ROOT / "recipes" / "train-tiny.toml"), "--data", str(data), "--run", str(run),
                  "--steps", "2"]) == 0

@@ -274,7 +274,7 @@ def test_missing_manifest_and_folder(tmp_path, capsys):
 
 
 def test_run_in_progress_fails_and_leftovers_are_noted(copy, capsys):
-    from dofsynth.locks import OutputLock
+    from dofsynth.generate.locks import OutputLock
 
     with OutputLock(copy):
         report = verify_dataset(copy)

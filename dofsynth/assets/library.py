@@ -18,7 +18,7 @@ import numpy as np
 from dofsynth.assets import builtin as B
 from dofsynth.assets.decode import (KINDS, Asset, AssetError, alpha_bbox, alpha_of, check_size, colour_linear,
                                     decode_asset, flatten, is_exr, unit_alpha)
-from dofsynth.assets.fit import too_small
+from dofsynth.assets.placement import too_small
 from dofsynth.assets.foreground import estimate, estimator_id
 from dofsynth.assets.pins import check_pins
 from dofsynth.assets.scan import Scan, Scanner, read_sources_licences, scan_backgrounds, scan_foregrounds

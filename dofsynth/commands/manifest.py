@@ -43,7 +43,7 @@ def register(subparsers) -> None:
 
 
 def _parts(args) -> tuple[list[Path], Path]:
-    from dofsynth.manifest import MANIFEST_NAME, PART_RE
+    from dofsynth.manifest.names import MANIFEST_NAME, PART_RE
 
     given = [Path(x) for x in args.parts]
     if len(given) == 1 and given[0].is_dir():

@@ -78,16 +78,18 @@ def register(subparsers) -> None:
                    help="disk (default), polygon:N or polygon:N:ROTATION_DEGREES (circumradius = CoC)")
     p.add_argument("--highlight", action="store_true",
                    help="boost near-white pixels to brighter-than-white before blurring, so highlights "
-                        "become bright bokeh discs, and map the result back (dofsynth.highlight; not with --model)")
-    p.add_argument("--method", choices=("layered", "subaperture", "exact"), default="layered",
-                   help="layered (fast, default), subaperture (--cells N: N x N aperture cells, up to about N^2 "
-                        "times the cost; it shows what blurred edges of layered scenes reveal, so a single "
-                        "photo gains little) or exact (aperture sampling; slow, for small images)")
-    p.add_argument("--cells", type=int_at_least(1), default=3, metavar="N",
-                   help="with --method subaperture: an N x N grid of aperture cells, 1..16 (default 3)")
+                        "become bright bokeh discs, and map the result back (dofsynth.render.highlight; not with --model)")
+    p.add_argument("--method", default="layered", metavar="METHOD",
+                   help="how the blur is rendered (dofsynth.render.METHODS): layered (fast, the default), "
+                        "subaperture (--cells N: N x N aperture cells, up to about N^2 times the cost; it shows what "
+                        "blurred edges of layered scenes reveal, so a single photo gains little) or exact "
+                        "(aperture sampling; slow, for small images); `dofsynth docs rendering` lists them")
+    p.add_argument("--cells", type=int_at_least(1), default=None, metavar="N",
+                   help="with a method that reads cells (subaperture): an N x N grid of aperture cells, 1..16 "
+                        "(default 3)")
     p.add_argument("--cat-eye", type=_nonneg, default=0.0, metavar="S",
                    help="optical vignetting strength in [0, 1]: bokeh become cat's eyes toward the corners "
-                        "(with --method subaperture or exact; default 0)")
+                        "(with a method that reads it: subaperture or exact; default 0)")
     p.add_argument("--model", metavar="RUN", action="append", default=[],
                    help="a training run folder: the DoF networks (render with them instead) or the depth "
                         "network (predict DEPTH); give it twice for both")
@@ -157,15 +159,30 @@ def _write(path: Path, rgb: np.ndarray) -> None:
         write_png(path, linear_to_srgb(rgb))
 
 
+def _look(args):
+    """The Look of the command's options; a ValueError names an option the method ignores."""
+    from dofsynth.render import method_entry
+    from dofsynth.render.look import Highlight, Look
+
+    reads = method_entry(args.method).options
+    if args.cells is not None and "cells" not in reads:
+        raise ValueError(f"--cells applies to a method that reads cells (subaperture), not --method {args.method}")
+    if args.cat_eye and "cat_eye" not in reads:
+        raise ValueError(f"--cat-eye applies to --method subaperture or exact, not --method {args.method}")
+    cells = (3 if args.cells is None else args.cells) if "cells" in reads else 1
+    return Look(method=args.method, cells=cells, cat_eye=args.cat_eye,
+                highlight=Highlight() if args.highlight else None)
+
+
 def run(args) -> int:
     import scipy.fft
 
-    from dofsynth.highlight import boost, unboost
     from dofsynth.optics.aperture import parse_aperture
-    from dofsynth.render import Plane, render_planes
+    from dofsynth.render.look import render_photo
 
     out = output_file(args.out, args.image, ".dof.png", (".png", ".exr"))
     aperture = parse_aperture(args.aperture)
+    look = _look(args)
     from dofsynth.io import DEPTH_MAP_KINDS
 
     if args.depth_kind not in DEPTH_MAP_KINDS:
@@ -182,20 +199,13 @@ def run(args) -> int:
     if not 0.0 <= focus <= 1.0:
         raise ValueError(f"--focus must be a disparity in [0, 1], got {focus}")
     if "render" in runs:  # a trained network renders instead (dofsynth.train.infer)
-        from dofsynth.train.infer import render_photo
+        from dofsynth.train.infer import render_photo as network_render
 
-        result = render_photo(run_dir=runs["render"], image_linear=rgb, disparity=disparity,
-                              focus=focus, aperture=args.aperture_scale)
+        result = network_render(run_dir=runs["render"], image_linear=rgb, disparity=disparity,
+                                focus=focus, aperture=args.aperture_scale)
     else:
-        if args.highlight:
-            rgb = boost(rgb)
-        plane = Plane(rgb, np.ones(disparity.shape, np.float32), disparity)
         with scipy.fft.set_workers(os.cpu_count() or 1):
-            cells = args.cells if args.method == "subaperture" else 1
-            result = render_planes([plane], focus, args.max_coc, aperture, method=args.method, cells=cells,
-                                   cat_eye=args.cat_eye)
-        if args.highlight:
-            result = unboost(result, out=result)
+            result = render_photo(rgb, disparity, focus, args.max_coc, aperture, look)
     _write(out, np.asarray(result, dtype=np.float32))
     how = (f"network {runs['render']}, aperture scale {args.aperture_scale}" if "render" in runs
            else f"max CoC {args.max_coc} px, aperture {args.aperture}")

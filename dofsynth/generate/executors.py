@@ -65,7 +65,7 @@ class Executor:
         """Make every task's shard in `out`; yield a ShardDone per finished shard. Calls
         `on_samples(path, n)` as samples are written (as often as the executor knows).
         Processes it starts on this machine hold a shared flock on `worker_lock` while they
-        live (dofsynth.locks). Raises ValueError for a user error inside a task (naming the
+        live (dofsynth.generate.locks). Raises ValueError for a user error inside a task (naming the
         shard), RuntimeError for a task that failed otherwise; when it returns or raises,
         nothing it started writes into `out` any more."""
         raise NotImplementedError

@@ -16,10 +16,12 @@ from pathlib import Path
 
 from dofsynth import __version__
 from dofsynth.files import final_name, is_temp_name, sha256_file
+from dofsynth.generate.locks import LOCK_NAME
 from dofsynth.generate.plan import ShardTask
-from dofsynth.locks import LOCK_NAME
-from dofsynth.manifest import (MANIFEST_NAME, PART_RE, PROGRESS_NAME, PROGRESS_PART_RE, load_manifest, load_part,
-                               manifest_shard_infos, read_progress)
+from dofsynth.manifest import load_manifest, manifest_shard_infos
+from dofsynth.manifest.names import MANIFEST_NAME, PART_RE, PROGRESS_NAME, PROGRESS_PART_RE
+from dofsynth.manifest.parts import load_part
+from dofsynth.manifest.progress import read_progress
 from dofsynth.rng import SPLITS
 from dofsynth.shards import ShardError, ShardInfo, shard_keys
 

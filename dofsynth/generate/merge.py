@@ -6,8 +6,9 @@ from pathlib import Path
 
 from dofsynth.files import atomic_write_bytes, canonical_json, is_temp_name
 from dofsynth.generate.folder import remove_shard_temps
-from dofsynth.locks import LOCK_NAME, OutputLock
-from dofsynth.manifest import MANIFEST_NAME, PROGRESS_PART_RE, merge_parts
+from dofsynth.generate.locks import LOCK_NAME, OutputLock
+from dofsynth.manifest.names import MANIFEST_NAME, PROGRESS_PART_RE
+from dofsynth.manifest.parts import merge_parts
 
 
 def merge(parts: list[Path], out: Path, keep_parts: bool = False) -> tuple[dict, list[str]]:

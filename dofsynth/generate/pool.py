@@ -11,7 +11,7 @@ Fault behaviour, by design:
   go of OUT's lock, so nothing writes into OUT after it.
 - Workers die with their parent: on Linux by a parent-death signal (SIGKILL), elsewhere by a
   thread watching the parent's pid; either way they also hold a shared flock on
-  `<run lock>.workers`, which a later run of the same OUT checks (dofsynth.locks), so the
+  `<run lock>.workers`, which a later run of the same OUT checks (dofsynth.generate.locks), so the
   promise "no two runs write into OUT at once" holds even against a straggler.
 - Workers ignore SIGINT: they start with it blocked (the parent blocks it while it spawns
   them, and a signal mask survives exec), so a Ctrl-C while they import stays pending, and

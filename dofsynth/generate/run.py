@@ -5,7 +5,7 @@
 test's); executors (dofsynth.generate.executors: this process, a spawn pool, a Ray cluster)
 only distribute the calls of the pure `generate_shard`; everything else is here, the same for
 all of them:
-- `OUT/.lock` (dofsynth.locks) refuses a second concurrent run into OUT: a whole run holds it
+- `OUT/.lock` (dofsynth.generate.locks) refuses a second concurrent run into OUT: a whole run holds it
   exclusively, `--shards` runs hold it shared plus `OUT/.lock.part-A-B` exclusively and refuse
   a live overlapping range;
 - what OUT may hold, what `--resume` keeps and the temp files of a killed run:
@@ -26,12 +26,14 @@ from dofsynth.generate.executors import Executor, LocalExecutor
 from dofsynth.generate.folder import (OutputNotEmptyError, check_shared_folder, entries, previous_state,
                                       remove_shard_temps, verify_existing)
 from dofsynth.generate.plan import ShardTask, plan_shards, plan_split, split_size
+from dofsynth.generate.locks import OutputLock, RangeLock
 from dofsynth.generate.worker import library_for, peak_rss_mb, portable, shard_usage
-from dofsynth.locks import OutputLock, RangeLock
+from dofsynth.manifest import build_manifest, with_bad_assets, write_manifest
+from dofsynth.manifest.names import MANIFEST_NAME, PROGRESS_NAME, part_name, progress_part_name
+from dofsynth.manifest.parts import build_part, load_part, write_part
+from dofsynth.manifest.progress import append_progress, read_progress, remove_progress, start_progress
+from dofsynth.manifest.usage import Usage
 from dofsynth.progress import bar as progress_bar
-from dofsynth.manifest import (MANIFEST_NAME, PROGRESS_NAME, Usage, append_progress, build_manifest, build_part, load_part,
-                               part_name, progress_part_name, read_progress, remove_progress, start_progress,
-                               with_bad_assets, write_manifest, write_part)
 from dofsynth.rng import SPLITS
 from dofsynth.shards import ShardInfo
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from dofsynth.assets import AssetError, build_library
 from dofsynth.generate.plan import shard_task
-from dofsynth.manifest import Usage
+from dofsynth.manifest.usage import Usage
 from dofsynth.rng import sample_key
 from dofsynth.sample import render_sample
 from dofsynth.scene import Scene, sample_scene

@@ -9,8 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterator
 
-from dofsynth.manifest import MANIFEST_NAME, ManifestError, load_manifest, manifest_shard_infos
-from dofsynth.recipe import recipe_from_text
+from dofsynth.manifest import ManifestError, load_manifest, manifest_shard_infos
 from dofsynth.record import SampleDecodeError, decode_sample
 from dofsynth.shards import ShardError, ShardInfo, read_shard
 
@@ -74,15 +73,3 @@ def read_samples(out_dir: str | Path, split: str, keys: list[str]) -> list[dict]
     """Decode the samples with the given keys (returned in the order given)."""
     raw = read_members_many(out_dir, split, keys)
     return [decode_sample(raw[k], k) for k in keys]
-
-
-def recipe_from_manifest(manifest: dict, out_dir: str | Path):
-    """The recipe embedded in the manifest, parsed from its stored text as the generator parsed
-    it. Relative asset folders resolve against the recorded recipe's folder when it still
-    exists, else against the data set folder."""
-    rec = manifest.get("recipe")
-    if not isinstance(rec, dict) or not isinstance(rec.get("text"), str):
-        raise ValueError(f"{Path(out_dir) / MANIFEST_NAME}: holds no recipe text")
-    path = rec.get("path")
-    base = Path(path).parent if path and Path(path).parent.is_dir() else Path(out_dir)
-    return recipe_from_text(rec["text"], path or f"{Path(out_dir) / MANIFEST_NAME} (recipe)", base)

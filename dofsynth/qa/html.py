@@ -25,6 +25,7 @@ from dofsynth.assets import build_library
 from dofsynth.files import atomic_write_bytes
 from dofsynth.image import resize, to_uint8
 from dofsynth.io import encode_png
+from dofsynth.manifest import recipe_from_manifest
 from dofsynth.qa import dataset as ds
 from dofsynth.qa.draw import colorize_disparity, coverage_overlay
 from dofsynth.qa.sheets import asset_names, choose_keys, sweep_images
@@ -104,7 +105,7 @@ def _sweep(out_dir, manifest, library, record, key, img_dir, steps):
     values with its first target's max CoC."""
     try:
         if library is None:
-            library = build_library(ds.recipe_from_manifest(manifest, out_dir))
+            library = build_library(recipe_from_manifest(manifest, out_dir))
         focuses = np.linspace(0.0, 1.0, steps)
         frames = sweep_images(Scene.from_dict(record), library, focuses)
     except Exception as exc:  # the page is still useful without the sweep

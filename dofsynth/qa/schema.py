@@ -14,8 +14,8 @@ import numpy as np
 from dofsynth.assets.decode import SIDES
 from dofsynth.compose import COVER_THRESHOLD
 from dofsynth.optics.aperture import APERTURES
-from dofsynth.record import SCHEMA_VERSION
-from dofsynth.scene import background_disparity
+from dofsynth.codecs import SCHEMA_VERSION
+from dofsynth.render.planes import background_disparity
 
 DEPTH_TOL = 1e-6
 RAMP_TOL = 1e-5
@@ -118,7 +118,7 @@ def check_record_schema(rec) -> list[str]:
 # ---------------------------------------------------------------- pixels
 def expected_background(bg: dict, shape: tuple[int, int]) -> np.ndarray:
     """The background plane's disparity map recomputed from the record's `background` block
-    with the generator's own `scene.background_disparity` (flat: b0 everywhere; horizontal
+    with the generator's own `render.planes.background_disparity` (flat: b0 everywhere; horizontal
     ramp: b0 at the left column to b1 at the right; vertical: b0 at the bottom row to b1 at
     the top)."""
     h, w = shape

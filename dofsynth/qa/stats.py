@@ -26,7 +26,7 @@ import numpy as np
 from dofsynth.files import atomic_write_bytes, canonical_json
 from dofsynth.io import decode_image, encode_png
 from dofsynth.optics.coc import coc_radius
-from dofsynth.record import decode_depth
+from dofsynth.codecs import decode_depth
 from dofsynth.qa import dataset as ds
 from dofsynth.qa.draw import BG, DIM, FG, put_text, text_size
 

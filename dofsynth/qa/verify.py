@@ -21,8 +21,9 @@ import numpy as np
 
 from dofsynth.assets import build_library
 from dofsynth.files import is_temp_name, sha256_file
-from dofsynth.locks import LOCK_NAME, lock_state
-from dofsynth.manifest import MANIFEST_NAME, PROGRESS_NAME
+from dofsynth.generate.locks import LOCK_NAME, lock_state
+from dofsynth.manifest import recipe_from_manifest
+from dofsynth.manifest.names import MANIFEST_NAME, PROGRESS_NAME
 from dofsynth.qa import dataset as ds
 from dofsynth.qa.schema import check_pixels, check_record_schema
 from dofsynth.recipe import load_recipe
@@ -259,7 +260,7 @@ def _deep_check(out_dir, manifest, raw_by_key, report, recipe_path=None) -> None
                                              "(its sha256 differs from the manifest's)")
                 return
         else:
-            recipe = ds.recipe_from_manifest(manifest, out_dir)
+            recipe = recipe_from_manifest(manifest, out_dir)
         library = build_library(recipe)
     except Exception as exc:
         report.add(MANIFEST_NAME, f"--deep: cannot rebuild the recipe and asset library: {exc}")

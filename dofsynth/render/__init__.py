@@ -1,7 +1,10 @@
 """Rendering layered scenes with shallow depth of field: `render_planes(planes, focus, max_coc,
-aperture, method=...)`.
+aperture, method=...)`, and `render_look` / `render_photo` (dofsynth.render.look), the one way
+a target or a photo is rendered with a recipe's options (highlight boost, method, chromatic
+aberration, colour space).
 
 planes (dofsynth.render.planes.Plane) are listed back to front; each method of `METHODS`
+(the one registry of methods: recipes, records, `dofsynth render` and the docs ask it)
 turns validated planes into linear RGB:
 - "layered" (dofsynth.render.layered): each plane blurred on its own with its aperture kernel
   (premultiplied), composited back to front; fast, what `generate` uses;
@@ -10,11 +13,14 @@ turns validated planes into linear RGB:
   edge reveals behind it, at about the cell count times the layered cost;
 - "exact" (dofsynth.render.exact): the aperture sampled, every plane warped and composited per
   aperture point, averaged; handles partial occlusion at depth edges, slow.
-A method is one entry: its function (validated planes, focus, max_coc, aperture, RenderOptions)
--> planar (3, H, W) float32, and whether it reads only inside the planes' boxes.
+A method is one `Method` entry: its function (validated planes, focus, max_coc, aperture,
+RenderOptions) -> planar (3, H, W) float32, the renderer id its records carry, the
+RenderOptions it reads (any other option set away from its default is refused by name) and
+whether it reads only inside the planes' boxes. A new method is one `METHODS[name] = Method(...)`.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -28,7 +34,7 @@ from dofsynth.render.layered import LEVEL_RATIO, render_layered
 from dofsynth.render.planes import Plane, validate_planes
 from dofsynth.render.subaperture import render_subaperture
 
-__all__ = ["METHODS", "LEVEL_RATIO", "Plane", "RenderOptions", "render_planes"]
+__all__ = ["METHODS", "LEVEL_RATIO", "Method", "Plane", "RenderOptions", "method_entry", "render_planes"]
 
 
 @dataclass(frozen=True)
@@ -58,17 +64,41 @@ class RenderOptions:
             raise ValueError(f"cat_eye must be a strength in [0, 1], got {self.cat_eye}")
 
 
+_OPTION_DEFAULTS = {f.name: f.default for f in dataclasses.fields(RenderOptions)}
+
+
 @dataclass(frozen=True)
 class Method:
-    render: Callable   # (planes, focus, max_coc, aperture, RenderOptions) -> (3, H, W) float32
-    uses_boxes: bool   # reads colour and alpha only inside each plane's box
+    """One render method: `render(planes, focus, max_coc, aperture, RenderOptions)` -> planar
+    (3, H, W) float32 linear; `renderer_id`, what records and manifests name (bumped when its
+    output bytes change in meaning); `options`, the RenderOptions fields it reads (the recipe
+    keys render.cells / render.cat_eye and `dofsynth render --cells / --cat-eye` among them);
+    `uses_boxes`, whether it reads colour and alpha only inside each plane's box; `summary`,
+    a line for --help and the docs."""
+
+    render: Callable
+    renderer_id: str
+    options: tuple[str, ...] = ()
+    uses_boxes: bool = True
+    summary: str = ""
 
 
 METHODS: dict[str, Method] = {
-    "layered": Method(render_layered, uses_boxes=True),
-    "subaperture": Method(render_subaperture, uses_boxes=True),
-    "exact": Method(render_exact, uses_boxes=False),
+    "layered": Method(render_layered, "layered-v5", ("level_step", "level_ratio"),
+                      summary="each plane blurred on its own and composited back to front (fast)"),
+    "subaperture": Method(render_subaperture, "subaperture-v3", ("level_step", "level_ratio", "cells", "cat_eye"),
+                          summary="the aperture cut into cells x cells parts, layered per part: shows what "
+                                  "a blurred edge reveals behind it, about cells^2 x the cost"),
+    "exact": Method(render_exact, "exact-v1", ("samples", "cat_eye"), uses_boxes=False,
+                    summary="every aperture point warped and composited, averaged (slow, a reference)"),
 }
+
+
+def method_entry(name: str) -> Method:
+    """The METHODS entry `name`; a ValueError lists the known ones."""
+    if name not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {name!r}")
+    return METHODS[name]
 
 
 def render_planes(planes, focus: float, max_coc: float, aperture: Aperture = Disk(), *, method: str = "layered",
@@ -86,16 +116,17 @@ def render_planes(planes, focus: float, max_coc: float, aperture: Aperture = Dis
     layout: no interleaving copy, which at 4096 px is a fresh 192 MiB frame and ~0.17 s).
     """
     planes = list(planes)
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {tuple(METHODS)}, got {method!r}")
-    m = METHODS[method]
+    m = method_entry(method)
     validate_planes(planes, focus, max_coc, use_boxes=m.uses_boxes)
     if not isinstance(aperture, Aperture):
         raise ValueError(f"aperture must be an aperture kind (Disk(), Polygon(...)), got {aperture!r}")
     options = RenderOptions(level_step=level_step, level_ratio=level_ratio, samples=samples, cells=cells,
                             cat_eye=float(cat_eye))
-    if options.cat_eye and method == "layered":
-        raise ValueError("cat_eye needs method='subaperture' (with cells > 1) or 'exact'")
+    unread = [f for f in _OPTION_DEFAULTS if f not in m.options and getattr(options, f) != _OPTION_DEFAULTS[f]]
+    if unread:
+        users = {f: [n for n, e in METHODS.items() if f in e.options] for f in unread}
+        raise ValueError("; ".join(f"{f} applies to method {' or '.join(users[f]) or 'none'}, not {method!r}"
+                                   for f in unread))
     acc = m.render(planes, focus, max_coc, aperture, options)
     if planar:
         return acc

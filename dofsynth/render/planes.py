@@ -43,11 +43,6 @@ class Plane:
             return np.full(self.shape, float(d), dtype=np.float32)
         return np.asarray(d, dtype=np.float32)
 
-    def premultiplied(self) -> np.ndarray:
-        """(H, W, 4) float32: colour times alpha, and alpha."""
-        a = self.alpha[:, :, None]
-        return np.concatenate([self.rgb * a, a], axis=2).astype(np.float32)
-
 
 def alpha_box(alpha: np.ndarray) -> tuple[int, int, int, int] | None:
     """(y0, y1, x0, x1): the bounding box of alpha > 0 (a `Plane.box`), or None when alpha is
@@ -135,3 +130,23 @@ def validate_planes(planes, focus: float, max_coc: float, use_boxes: bool = True
             raise ValueError(f"planes[{i}].disparity must lie in [0, 1], got [{d_lo}, {d_hi}]")
         if rgb_lo < 0:
             raise ValueError(f"planes[{i}].rgb must be linear light >= 0, got min {rgb_lo}")
+
+
+def background_disparity(mode: str, b0: float, b1: float, direction: str | None, h: int, w: int) -> np.ndarray:
+    """(H, W) float32 disparity of the background. "flat": b0 everywhere (0 in sampled scenes);
+    "ramp" + "horizontal": b0 at the left pixel column, linear to b1 at the right column;
+    "ramp" + "vertical": b0 at the bottom pixel row, linear to b1 at the top row. (A ramp of
+    h = 1 or w = 1 is its row or column: what a broadcast plane holds.)"""
+    if mode == "flat":
+        return np.full((h, w), b0, dtype=np.float32)
+    if mode != "ramp":
+        raise ValueError(f"background mode must be 'flat' or 'ramp', got {mode!r}")
+    if direction == "horizontal":
+        t = np.linspace(0.0, 1.0, w) if w > 1 else np.zeros(1)
+        row = b0 + (b1 - b0) * t
+        return np.ascontiguousarray(np.broadcast_to(row[None, :], (h, w)), dtype=np.float32)
+    if direction == "vertical":
+        t = np.linspace(1.0, 0.0, h) if h > 1 else np.zeros(1)  # 1 at the top row, 0 at the bottom
+        col = b0 + (b1 - b0) * t
+        return np.ascontiguousarray(np.broadcast_to(col[:, None], (h, w)), dtype=np.float32)
+    raise ValueError(f"ramp direction must be 'horizontal' or 'vertical', got {direction!r}")

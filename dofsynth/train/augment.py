@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dofsynth.scene import background_disparity
+from dofsynth.render.planes import background_disparity
 
 MORPH_OPS = ("dilate", "erode")
 
@@ -40,7 +40,7 @@ class DepthLayers:
 
 def record_background(record: dict, shape: tuple[int, int]) -> np.ndarray:
     """The background disparity map (H, W) of a sample record's `background` block
-    (docs/FORMAT.md), as the generator made it (dofsynth.scene.background_disparity)."""
+    (docs/FORMAT.md), as the generator made it (dofsynth.render.planes.background_disparity)."""
     bg = record["background"]
     return background_disparity(bg["mode"], float(bg["b0"]), float(bg["b1"]), bg.get("direction"), *shape)
 

@@ -25,8 +25,9 @@ over dropped, so every rank makes the same number of batches (evaluation keeps e
 shares them as evenly as possible). A reader opens only the shards its share touches. Each
 reader decodes and crops a sample before its shuffle buffer ([data] shuffle_buffer crops of
 about 10 * C**2 bytes each), so memory does not grow with the image size. Everything random
-about a sample (target, crop, corruption) comes from `np.random.default_rng([seed, epoch,
-split, index])`, so it does not depend on the number of workers or ranks. A resumed epoch
+about a sample (target, crop, corruption) comes from its own stream, `stream_rng(seed, "item",
+epoch, split id, index)` (dofsynth.rng.STREAMS), so it does not depend on the number of
+workers or ranks. A resumed epoch
 starts at its batch on every rank (`set_epoch(epoch, skip_batches=k)`): the skipped samples
 are not decoded, and what follows is what the uninterrupted run would have read.
 """
@@ -48,11 +49,10 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from dofsynth.color import srgb_to_linear
 from dofsynth.io import decode_image, unit_float
-from dofsynth.manifest import load_manifest, manifest_shard_infos
+from dofsynth.manifest import load_manifest, manifest_shard_infos, recipe_from_manifest
 from dofsynth.optics.coc import coc_radius
-from dofsynth.record import decode_depth
-from dofsynth.recipe import recipe_from_text
-from dofsynth.rng import SPLIT_ID, sample_key
+from dofsynth.codecs import decode_depth
+from dofsynth.rng import SPLIT_ID, sample_key, stream_int, stream_rng
 from dofsynth.shards import read_shard
 from dofsynth.train.augment import corrupt_disparity, layers_from_record
 from dofsynth.train.config import Config, replace
@@ -90,11 +90,6 @@ def find_segments(data_dir: str | Path, split: str, part: str = "all", val_share
     return segs
 
 
-def find_shards(data_dir: str | Path, split: str) -> list[str]:
-    """The paths of the shards of `split` that OUT/manifest.json lists, in sample order."""
-    return [s.path for s in find_segments(data_dir, split)]
-
-
 def raw_samples(shards, split: str | None = None) -> Iterator[dict]:
     """Every sample of the shards (paths, or Segments with `split` given) as a webdataset-style
     dict: {"__key__": key, "__url__": the shard's path, suffix: bytes}."""
@@ -105,11 +100,6 @@ def raw_samples(shards, split: str | None = None) -> Iterator[dict]:
             shard = shard.path
         for key, members in read_shard(shard, keys):
             yield {"__key__": key, "__url__": str(shard), **members}
-
-
-def peek_records(shard: str | Path, limit: int = 256) -> list[dict]:
-    """The JSON records of the first `limit` samples of one shard."""
-    return [json.loads(s["json"]) for s in islice(raw_samples([shard]), limit)]
 
 
 def area_downsample(x: np.ndarray, factor: int) -> np.ndarray:
@@ -133,7 +123,7 @@ def _chw(x: np.ndarray) -> torch.Tensor:
 
 def sample_rng(seed: int, epoch: int, split: str, index: int) -> np.random.Generator:
     """The generator of everything random about one training item (target, crop, corruption)."""
-    return np.random.default_rng([seed, epoch, SPLIT_ID[split], index])
+    return stream_rng(seed, "item", epoch, SPLIT_ID[split], index)
 
 
 def training_item(sample: dict, cfg: Config, rng: np.random.Generator, *, crop: int | None = None,
@@ -269,7 +259,7 @@ class DofShards(IterableDataset):
         worker = (worker + self.skip_batches) % workers
         segs = list(self.segments)
         if self.train:
-            order = np.random.default_rng([self.seed, self.epoch, 7]).permutation(len(segs))
+            order = stream_rng(self.seed, "shard_order", self.epoch).permutation(len(segs))
             segs = [segs[i] for i in order]
         n, readers, slot = sum(s.hi - s.lo for s in segs), world * workers, rank * workers + worker
         if self.train:
@@ -295,7 +285,7 @@ class DofShards(IterableDataset):
             return pos, decode_crop(raw, self.cfg, sample_rng(self.seed, epoch, self.split, int(index)), crop=crop)
 
         shuffled = self.train and self.cfg.data.shuffle_buffer > 1
-        seed = int(np.random.SeedSequence([self.seed, self.epoch, rank, worker]).generate_state(1)[0])
+        seed = stream_int(self.seed, "shuffle", self.epoch, rank, worker)
         order = list(self._shuffle(iter(range(m)), seed)) if shuffled else range(m)  # counts alone decide it
         skipped = set(order[:skip])
         stream = map(compact, enumerate(raw_samples(segs, self.split)))
@@ -322,16 +312,14 @@ def make_loader(data_dir: str | Path, split: str, cfg: Config, *, train: bool, s
     workers = cfg.data.num_workers
     loader = DataLoader(ds, batch_size=cfg.data.batch_size, num_workers=workers, pin_memory=pin_memory,
                         prefetch_factor=4 if workers else None, worker_init_fn=quiet_worker,
-                        generator=torch.Generator().manual_seed(seed))
+                        generator=torch.Generator().manual_seed(stream_int(seed, "loader")))
     return ds, loader
 
 
 def data_facts(data_dir: str | Path) -> tuple[float, int]:
     """(r_max, long side) of a data set from the recipe its manifest holds: the high end of
     focus.max_coc (full-res px) and the output size (px)."""
-    manifest = load_manifest(data_dir)
-    rec = manifest["recipe"]
-    recipe = recipe_from_text(rec["text"], rec.get("path") or f"{data_dir}/manifest.json", Path(data_dir))
+    recipe = recipe_from_manifest(load_manifest(data_dir), data_dir)
     return float(recipe.focus.max_coc[1]), int(recipe.size)
 
 

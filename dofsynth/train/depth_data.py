@@ -37,8 +37,8 @@ from torch.utils.data import DataLoader, IterableDataset
 from dofsynth.color import linear_to_srgb
 from dofsynth.image import resize
 from dofsynth.io import decode_image, normalize_disparity, read_depth, read_image, unit_float
-from dofsynth.record import decode_depth
-from dofsynth.rng import sample_key
+from dofsynth.codecs import decode_depth
+from dofsynth.rng import sample_key, stream_rng
 from dofsynth.shards import member_index, read_members
 from dofsynth.train.config import Config
 from dofsynth.train.data import quiet_worker, find_segments, process_slot
@@ -215,7 +215,7 @@ class DepthMix(IterableDataset):
         b = self.cfg.data.batch_size
         if not self.train:
             return [self.depth_items[i:i + b] for i in range(0, len(self.depth_items), b)]
-        rng = np.random.default_rng([self.seed, epoch, 11])
+        rng = stream_rng(self.seed, "depth_plan", epoch)
         n_d, n_s = self._split()
         lists = [(n, [items[i] for i in rng.permutation(len(items))]) for n, items in
                  ((n_d, self.depth_items), (n_s, self.seg_items)) if n]
@@ -229,7 +229,7 @@ class DepthMix(IterableDataset):
         for j in range(self.skip_batches + worker, len(mine), workers):
             g = rank + world * j
             for q, item in enumerate(mine[j]):
-                rng = np.random.default_rng([self.seed, self.epoch, g, q]) if self.train else None
+                rng = stream_rng(self.seed, "depth_item", self.epoch, g, q) if self.train else None
                 try:
                     x = load_item(item, self.cfg.depth.rgbd_quantity, self._index)
                 except (KeyError, ValueError) as exc:

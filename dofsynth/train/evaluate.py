@@ -3,9 +3,9 @@
 For every sample and every one of its DoF targets, the same disparity goes to
   - "network":   the run's DeepLensNet on the whole image (lens blur at 1/2**levels, then
                  guided upsampling), and
-  - "classical": dofsynth.render.render_planes on the image as a single plane (alpha = 1,
-                 disparity = the given map) with the options that made the targets (the
-                 sample's aperture, its highlight boost, linear light or not),
+  - "classical": dofsynth.render.look.render_photo on the image as a single plane (alpha = 1,
+                 disparity = the given map) with the Look that made the targets (the
+                 sample's aperture, method and options, highlight boost, linear light or not),
 and, as a floor, "all-in-focus" (the input itself). Which disparity (`depth`): "gt" (the
 clean one), "run" (the run's own training corruption), one corruption kind alone at
 probability 1 with the default ranges of [augment] (see `DEPTH_KINDS`), or a TOML file whose
@@ -33,11 +33,10 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from dofsynth.color import linear_to_srgb, srgb_to_linear
 from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
-from dofsynth.highlight import boost, unboost
 from dofsynth.io import decode_image, normalize_disparity
-from dofsynth.record import decode_depth
+from dofsynth.codecs import decode_depth
 from dofsynth.optics.aperture import aperture_from_dict
-from dofsynth.render import Plane, render_planes
+from dofsynth.render.look import Look, render_photo
 from dofsynth.train.checkpoint import load_model
 from dofsynth.train.config import AugmentConfig, load
 from dofsynth.train.data import find_segments, raw_samples, sample_rng, training_item
@@ -72,19 +71,12 @@ def _hwc(t: torch.Tensor) -> np.ndarray:
 def classical_render(image_srgb: np.ndarray, disparity: np.ndarray, focus: float, max_coc: float,
                      record: dict) -> np.ndarray:
     """The single-image classical render, sRGB-encoded: one plane, alpha 1, the given disparity
-    map, rendered as the record's targets were (dofsynth.sample): its aperture, its highlight
-    boost and inverse, in linear light unless `options.linear_light` is false."""
-    options = record.get("options", {})
-    hl = options.get("highlight")
-    linear_light = options.get("linear_light", True)
-    rgb = srgb_to_linear(image_srgb) if linear_light else np.array(image_srgb, np.float32)
-    if linear_light and hl:
-        rgb = boost(rgb, **hl)
-    plane = Plane(rgb, alpha=np.ones(disparity.shape, np.float32), disparity=disparity)
-    out = render_planes([plane], focus, max_coc, aperture_from_dict(record["aperture"]))
-    if not linear_light:
-        return np.clip(out, 0.0, 1.0)
-    return linear_to_srgb(unboost(out, **hl) if hl else out)
+    map, rendered as the record's targets were (dofsynth.render.look.render_photo with the
+    record's Look: its method and options, highlight boost and inverse, chromatic scales,
+    linear light or the naive baseline) through the record's aperture."""
+    out = render_photo(srgb_to_linear(image_srgb), disparity, focus, max_coc,
+                       aperture_from_dict(record["aperture"]), Look.from_dict(record.get("options", {})))
+    return linear_to_srgb(out)
 
 
 def edge_band(disparity: np.ndarray, radius: float) -> np.ndarray:

@@ -35,6 +35,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from dofsynth import progress
 from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
+from dofsynth.rng import stream_int
 from dofsynth.train import checkpoint
 from dofsynth.train.config import Config, from_dict, to_toml
 from dofsynth.train.data import make_loader, resolve
@@ -189,7 +190,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
 
     # -- model, optimizer, precision -----------------------------------------------------------
     t = cfg.train
-    torch.manual_seed(t.seed)  # the same initial weights on every rank
+    torch.manual_seed(stream_int(t.seed, "init"))  # the same initial weights on every rank
     model = checkpoint.build_model(cfg)
     if depth_task and cfg.depth.weights and state is None:
         say(f"backbone: {load_backbone(model, cfg.depth.weights)} tensors from {cfg.depth.weights}")

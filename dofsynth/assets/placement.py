@@ -1,20 +1,76 @@
-"""Where an object goes: its scale, position and flip in the frame (`ObjectParams`), drawn so
-that its matte's cut sides lie on the frame's edges, at least `min_in_frame` of its box is in
-the frame and no asset is magnified past `assets.max_upscale`; and how much of each object is
-seen (`visible_shares`, on uint8 alpha thumbnails in integer arithmetic: the same on every
-machine). Used by dofsynth.scene, which draws everything else."""
+"""Placement rules, in one place: what an asset can be at a recipe's frame size and where an
+object goes.
+
+- `largest_crop`, `scale_range`, `too_small`: the largest background crop of the frame's aspect
+  and the scales a cutout may be placed at, both bounded by `assets.max_upscale`, so that the
+  library can refuse (by name) assets too small for the recipe before any scene is drawn;
+- `draw_object`: an object's scale, position and flip in the frame (`ObjectParams`), drawn so
+  that its matte's cut sides lie on the frame's edges, at least `min_in_frame` of its box is in
+  the frame and no asset is magnified past `assets.max_upscale`;
+- `visible_shares`: how much of each object is seen (on uint8 alpha thumbnails in integer
+  arithmetic: the same on every machine).
+dofsynth.scene draws everything else; dofsynth.compose places the pixels with `placed_size`."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from dofsynth.assets import Asset
-from dofsynth.assets.fit import scale_range
+from dofsynth.assets.decode import Asset
 from dofsynth.recipe import Recipe
 from dofsynth.rng import draw_uniform
 
 _PLACE_TRIES = 64
+
+
+def largest_crop(size: tuple[int, int], frame: tuple[int, int]) -> tuple[float, float]:
+    """(w, h) in source px of the largest crop of a (w, h) photo with the frame's aspect."""
+    sw, sh = size
+    H, W = frame
+    if sw * H > sh * W:  # source wider than the frame aspect
+        return sh * W / H, float(sh)
+    return float(sw), sw * H / W
+
+
+def background_upscale(asset: Asset, frame: tuple[int, int]) -> float:
+    """How much the largest crop of a background is magnified to fill the frame."""
+    return frame[1] / largest_crop(asset.size, frame)[0]
+
+
+def scale_range(asset: Asset, recipe, anchored=()) -> tuple[float, float]:
+    """The scales (output px per source px) an object may be placed at: its long side at
+    `scene.foreground.scale` of the frame's short side, no more magnified than
+    `assets.max_upscale`, and wide (tall) enough to span the frame when cut on both sides."""
+    H, W = recipe.frame
+    _, _, ew, eh = asset.extent
+    lo, hi = (f * min(H, W) / max(ew, eh) for f in recipe.scene.foreground.scale)
+    hi = min(hi, recipe.assets.max_upscale)
+    if {"left", "right"} <= set(anchored):
+        lo = max(lo, W / ew)
+    if {"top", "bottom"} <= set(anchored):
+        lo = max(lo, H / eh)
+    return lo, hi
+
+
+def too_small(asset: Asset, recipe) -> str | None:
+    """Why `asset` cannot be used at the recipe's frame size, or None."""
+    H, W = recipe.frame
+    limit = recipe.assets.max_upscale
+    if asset.kind == "background":
+        up = background_upscale(asset, (H, W))
+        if up > limit:
+            return (f"too small for {W}x{H} samples: {asset.size[0]}x{asset.size[1]}, its largest crop would be "
+                    f"magnified {up:.2f}x (assets.max_upscale = {limit:g})")
+        return None
+    lo, hi = scale_range(asset, recipe, asset.cut)
+    if lo > hi:
+        _, _, ew, eh = asset.extent
+        why = (f"its cut sides ({', '.join(asset.cut)}) must span the frame" if lo > recipe.scene.foreground.scale[1]
+               * min(H, W) / max(ew, eh) else f"it would be magnified {lo:.2f}x")
+        return (f"too small for {W}x{H} samples: a {ew}x{eh} cutout, {why} (assets.max_upscale = {limit:g}, "
+                f"scene.foreground.scale = {list(recipe.scene.foreground.scale)})")
+    return None
+
 
 
 @dataclass(frozen=True)
@@ -79,6 +135,21 @@ def _place(rng: np.random.Generator, asset: Asset, disparity: float, recipe: Rec
         if in_frame_share(x, y, w, h, W, H) >= m:
             return ObjectParams(disparity=float(disparity), scale=float(scale), x=x, y=y, flip=flip, anchored=anchored)
     return None
+
+
+def draw_crop(rng: np.random.Generator, asset: Asset, recipe: Recipe) -> tuple[tuple[int, int, int, int], bool]:
+    """((x, y, w, h) in source px, flip) of a background: a crop of the frame's aspect,
+    `scene.background.crop` of the largest one and at least so large that it is magnified no
+    more than `assets.max_upscale`, at a uniform position; flipped with `flip_share`."""
+    H, W = recipe.frame
+    sw, sh = asset.size
+    cw_max, ch_max = largest_crop(asset.size, (H, W))
+    lo, hi = recipe.scene.background.crop
+    need = W / (recipe.assets.max_upscale * cw_max)  # the least crop magnified no more than max_upscale
+    c = float(rng.uniform(max(lo, need), max(hi, need)))
+    cw, ch = max(1, min(sw, round(cw_max * c))), max(1, min(sh, round(ch_max * c)))
+    cx, cy = int(rng.integers(0, sw - cw + 1)), int(rng.integers(0, sh - ch + 1))
+    return (cx, cy, cw, ch), bool(rng.random() < recipe.scene.foreground.flip_share)
 
 
 def draw_object(rng, pool: list[Asset], disparity: float, recipe: Recipe, exclude=()):
