@@ -22,8 +22,8 @@ from dofsynth.optics.aperture import APERTURES
 from dofsynth.optics.coc import MAX_COC_PER_SIDE
 from dofsynth.optics.lens import ThinLens
 from dofsynth.record import member_options, unknown_options
-from dofsynth.render import METHODS
-from dofsynth.render.look import Highlight, Look
+from dofsynth.render import DEFAULT_METHOD, METHODS, readers
+from dofsynth.render.look import METHOD_FIELDS, Highlight, Look
 
 BUILTIN = "builtin"
 dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
@@ -118,7 +118,7 @@ class RenderRules:
     linear_light: bool = key(True)
     members: tuple[str, ...] = key(())   # optional members per sample: options of dofsynth.record.MEMBERS
     chromatic: tuple[float, ...] = key((1.0, 1.0, 1.0), lo=0.25, hi=4.0)  # CoC scale of R, G, B (longitudinal CA)
-    method: str = key("layered")          # a key of dofsynth.render.METHODS
+    method: str = key(DEFAULT_METHOD)     # a key of dofsynth.render.METHODS
     cells: int = key(3, lo=1, hi=16)     # methods reading cells (subaperture): an n x n grid of aperture cells
     cat_eye: float = key(0.0, lo=0.0, hi=1.0)  # methods reading cat_eye (subaperture, exact): vignetting strength
     aperture: ApertureRules = table(ApertureRules)
@@ -172,11 +172,10 @@ def _check_render(r: Recipe, given: dict, file: str) -> None:
         raise error(file, "render.aperture.kind", f"one of {list(APERTURES)}", rr.aperture.kind)
     if rr.method not in METHODS:
         raise error(file, "render.method", f"one of {list(METHODS)}", rr.method)
-    users = {f: [n for n, m in METHODS.items() if f in m.options] for f in ("cells", "cat_eye")}
-    for f in ("cells", "cat_eye"):
-        if f in given and f not in METHODS[rr.method].options and given[f] != (0.0 if f == "cat_eye" else None):
-            raise error(file, f"render.{f}", f"no {f} with method {rr.method} (it applies to method "
-                        f"{' or '.join(users[f])}); remove it or choose that method", given[f])
+    for f in METHOD_FIELDS:  # a method option given, away from its neutral value, that the method ignores
+        if f in given and f not in METHODS[rr.method].options and not (f == "cat_eye" and given[f] == 0):
+            raise error(file, f"render.{f}", f"no {f} with method {rr.method} (it applies to method {readers(f)}); "
+                        "remove it or choose that method", given[f])
     if len(rr.chromatic) != 3:
         raise error(file, "render.chromatic", "three CoC scales (R, G, B)", list(rr.chromatic))
     if max(rr.chromatic) * r.focus.max_coc[1] > MAX_COC_PER_SIDE * r.size:

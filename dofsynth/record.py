@@ -27,7 +27,7 @@ from dofsynth.codecs import (DEPTH_CHANNEL, SCHEMA_VERSION, decode_depth, encode
                              encode_layer, encode_png8, encode_srgb_png_planar, encode_srgb_png_rows)
 from dofsynth.files import canonical_json
 from dofsynth.io import decode_exr, decode_image
-from dofsynth.render import METHODS
+from dofsynth.render import DEFAULT_METHOD, METHODS
 
 PLANES = 3  # layered planes of a scene: K = 0 background, 1 middle, 2 front
 
@@ -169,7 +169,7 @@ CONVENTIONS = {
 }
 
 
-def format_description(method: str = "layered", options: tuple[str, ...] | list[str] = ()) -> dict:
+def format_description(method: str = DEFAULT_METHOD, options: tuple[str, ...] | list[str] = ()) -> dict:
     """What the manifest says about the samples of a set made with render `method` and the
     `render.members` `options`: the members they hold, conventions, record schema, renderer."""
     return {"members": [m.to_dict() for m in held_members(options)], "conventions": CONVENTIONS,

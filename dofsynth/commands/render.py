@@ -79,7 +79,7 @@ def register(subparsers) -> None:
     p.add_argument("--highlight", action="store_true",
                    help="boost near-white pixels to brighter-than-white before blurring, so highlights "
                         "become bright bokeh discs, and map the result back (dofsynth.render.highlight; not with --model)")
-    p.add_argument("--method", default="layered", metavar="METHOD",
+    p.add_argument("--method", default=None, metavar="METHOD",
                    help="how the blur is rendered (dofsynth.render.METHODS): layered (fast, the default), "
                         "subaperture (--cells N: N x N aperture cells, up to about N^2 times the cost; it shows what "
                         "blurred edges of layered scenes reveal, so a single photo gains little) or exact "
@@ -161,16 +161,16 @@ def _write(path: Path, rgb: np.ndarray) -> None:
 
 def _look(args):
     """The Look of the command's options; a ValueError names an option the method ignores."""
-    from dofsynth.render import method_entry
+    from dofsynth.render import DEFAULT_METHOD, method_entry, readers
     from dofsynth.render.look import Highlight, Look
 
-    reads = method_entry(args.method).options
-    if args.cells is not None and "cells" not in reads:
-        raise ValueError(f"--cells applies to a method that reads cells (subaperture), not --method {args.method}")
-    if args.cat_eye and "cat_eye" not in reads:
-        raise ValueError(f"--cat-eye applies to --method subaperture or exact, not --method {args.method}")
+    method = args.method or DEFAULT_METHOD
+    reads = method_entry(method).options
+    for flag, name, given in (("--cells", "cells", args.cells is not None), ("--cat-eye", "cat_eye", bool(args.cat_eye))):
+        if given and name not in reads:
+            raise ValueError(f"{flag} applies to --method {readers(name)}, not --method {method}")
     cells = (3 if args.cells is None else args.cells) if "cells" in reads else 1
-    return Look(method=args.method, cells=cells, cat_eye=args.cat_eye,
+    return Look(method=method, cells=cells, cat_eye=args.cat_eye,
                 highlight=Highlight() if args.highlight else None)
 
 

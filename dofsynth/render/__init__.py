@@ -34,7 +34,8 @@ from dofsynth.render.layered import LEVEL_RATIO, render_layered
 from dofsynth.render.planes import Plane, validate_planes
 from dofsynth.render.subaperture import render_subaperture
 
-__all__ = ["METHODS", "LEVEL_RATIO", "Method", "Plane", "RenderOptions", "method_entry", "render_planes"]
+__all__ = ["DEFAULT_METHOD", "METHODS", "LEVEL_RATIO", "Method", "Plane", "RenderOptions", "method_entry", "readers",
+           "render_planes"]
 
 
 @dataclass(frozen=True)
@@ -94,6 +95,9 @@ METHODS: dict[str, Method] = {
 }
 
 
+DEFAULT_METHOD = "layered"  # what recipes, records without method keys and `dofsynth render` use
+
+
 def method_entry(name: str) -> Method:
     """The METHODS entry `name`; a ValueError lists the known ones."""
     if name not in METHODS:
@@ -101,7 +105,12 @@ def method_entry(name: str) -> Method:
     return METHODS[name]
 
 
-def render_planes(planes, focus: float, max_coc: float, aperture: Aperture = Disk(), *, method: str = "layered",
+def readers(option: str) -> str:
+    """The methods that read RenderOptions field `option`, as "a or b" (for messages)."""
+    return " or ".join(n for n, m in METHODS.items() if option in m.options) or "none"
+
+
+def render_planes(planes, focus: float, max_coc: float, aperture: Aperture = Disk(), *, method: str = DEFAULT_METHOD,
                   level_step: float = 0.5, level_ratio: float = LEVEL_RATIO, samples: int | None = None,
                   cells: int = 1, cat_eye: float = 0.0, planar: bool = False) -> np.ndarray:
     """Render a layered scene with shallow depth of field; linear RGB (H, W, 3) float32.
@@ -124,9 +133,7 @@ def render_planes(planes, focus: float, max_coc: float, aperture: Aperture = Dis
                             cat_eye=float(cat_eye))
     unread = [f for f in _OPTION_DEFAULTS if f not in m.options and getattr(options, f) != _OPTION_DEFAULTS[f]]
     if unread:
-        users = {f: [n for n, e in METHODS.items() if f in e.options] for f in unread}
-        raise ValueError("; ".join(f"{f} applies to method {' or '.join(users[f]) or 'none'}, not {method!r}"
-                                   for f in unread))
+        raise ValueError("; ".join(f"{f} applies to method {readers(f)}, not {method!r}" for f in unread))
     acc = m.render(planes, focus, max_coc, aperture, options)
     if planar:
         return acc

@@ -21,7 +21,7 @@ import numpy as np
 
 from dofsynth.color import linear_to_srgb, srgb_to_linear
 from dofsynth.optics.aperture import Aperture
-from dofsynth.render import METHODS, method_entry, render_planes
+from dofsynth.render import DEFAULT_METHOD, METHODS, method_entry, readers, render_planes
 from dofsynth.render.highlight import boost, unboost
 from dofsynth.render.planes import Plane
 
@@ -46,7 +46,7 @@ class Look:
     CoC scale of R, G, B; highlight: the boost, or None; linear_light: blur in linear light
     (False: the naive baseline, blur of sRGB codes, no highlight, no chromatic aberration)."""
 
-    method: str = "layered"
+    method: str = DEFAULT_METHOD
     cells: int = 1
     cat_eye: float = 0.0
     chromatic: tuple[float, float, float] = NO_CHROMATIC
@@ -57,9 +57,7 @@ class Look:
         m = method_entry(self.method)
         for f in METHOD_FIELDS:
             if getattr(self, f) != getattr(Look, f) and f not in m.options:
-                users = [n for n, e in METHODS.items() if f in e.options]
-                raise ValueError(f"{f} = {getattr(self, f)!r} applies to method {' or '.join(users)}, "
-                                 f"not {self.method!r}")
+                raise ValueError(f"{f} = {getattr(self, f)!r} applies to method {readers(f)}, not {self.method!r}")
         if len(self.chromatic) != 3 or not all(math.isfinite(v) and v > 0 for v in self.chromatic):
             raise ValueError(f"chromatic must be three positive CoC scales (R, G, B), got {self.chromatic!r}")
         if not self.linear_light:
@@ -80,17 +78,18 @@ class Look:
 
     def to_dict(self) -> dict:
         """The record's `options` keys of this look (docs/FORMAT.md): highlight, linear_light;
-        chromatic unless (1, 1, 1); the method keys (`keywords`) unless the method is layered."""
+        chromatic unless (1, 1, 1); the method keys (`keywords`) unless the method is the
+        default (layered records stay as they were before methods existed)."""
         d = {"highlight": asdict(self.highlight) if self.highlight else None, "linear_light": self.linear_light}
         if tuple(self.chromatic) != NO_CHROMATIC:
             d["chromatic"] = list(self.chromatic)
-        return d if self.method == "layered" else {**d, **self.keywords()}
+        return d if self.method == DEFAULT_METHOD else {**d, **self.keywords()}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Look":
         """Inverse of `to_dict` (other keys of a record's options are ignored)."""
         hl = d.get("highlight")
-        return cls(method=d.get("method", "layered"), cells=int(d.get("cells", 1)),
+        return cls(method=d.get("method", DEFAULT_METHOD), cells=int(d.get("cells", 1)),
                    cat_eye=float(d.get("cat_eye", 0.0)),
                    chromatic=tuple(float(v) for v in d.get("chromatic", NO_CHROMATIC)),
                    highlight=Highlight(**hl) if hl else None, linear_light=bool(d.get("linear_light", True)))
