@@ -88,18 +88,20 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command; every failure ends in one line on stderr and a non-zero status: 2 for a
     problem with the input, 1 for a failure while working (a full disk, a dead worker), 130 on
     Ctrl-C, 143 on SIGTERM. A command that can continue later says how (`resume_hint`)."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
-    progress.set_verbosity(args.quiet, args.verbose)
-    if threading.current_thread() is threading.main_thread():
+    main_thread = threading.current_thread() is threading.main_thread()
+    if main_thread:  # first: a signal while the parser imports the commands is handled too
         signal.signal(signal.SIGTERM, _terminate)
-    hint = getattr(args, "resume_hint", None)
-    again = f"; {hint(args)}" if hint else ""
-    name = f"dofsynth {args.command}"
+    name, again = "dofsynth", ""
     try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if not getattr(args, "func", None):
+            parser.print_help()
+            return 2
+        progress.set_verbosity(args.quiet, args.verbose)
+        hint = getattr(args, "resume_hint", None)
+        again = f"; {line}" if hint and (line := hint(args)) else ""
+        name = f"dofsynth {args.command}"
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError) as exc:
         print(f"{name}: error: {exc}", file=sys.stderr)
@@ -123,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: terminated (SIGTERM){again}", file=sys.stderr)
         return 143
     finally:
-        if threading.current_thread() is threading.main_thread():
+        if main_thread:
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 

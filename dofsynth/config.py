@@ -56,14 +56,16 @@ def error(file: str, dotted: str, expected: str, got: Any) -> ConfigError:
 
 
 def _bounds(s: Spec, what: str = "") -> str:
-    pre = f" ({what}" if what else " ("
+    """The bounds of a spec as words: " in [0, 10]", " (each > 0)", "" (none)."""
     if s.lo is not None and s.hi is not None:
-        return f"{pre} in {'(' if s.lo_open else '['}{s.lo}, {s.hi}])"
-    if s.lo is not None:
-        return f"{pre} {'>' if s.lo_open else '>='} {s.lo})"
-    if s.hi is not None:
-        return f"{pre} <= {s.hi})"
-    return ""
+        text = f"in {'(' if s.lo_open else '['}{s.lo}, {s.hi}]"
+    elif s.lo is not None:
+        text = f"{'>' if s.lo_open else '>='} {s.lo}"
+    elif s.hi is not None:
+        text = f"<= {s.hi}"
+    else:
+        return ""
+    return f" ({what} {text})" if what else f" {text}"
 
 
 def _in_bounds(v: float, s: Spec) -> bool:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import os
+import zlib
 from pathlib import Path
 
 import cv2
@@ -49,14 +50,55 @@ def unit_float(img: np.ndarray, name: str) -> np.ndarray:
     raise ImageReadError(f"{name}: unsupported pixel type {img.dtype}")
 
 
+MAX_DECODE_PIXELS = 1 << 30   # OpenCV's own limit (CV_IO_MAX_IMAGE_PIXELS); more is a bomb, not a photo
+MAX_DECODE_SIDE = 1_000_000   # libpng's default user limit per side
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def check_png(data: bytes, name: str) -> None:
+    """Walk a PNG's chunks before libpng sees them, so that what libpng would report on stderr
+    in a line of its own (and OpenCV in several) is one ImageReadError naming the file: a
+    truncated file, a chunk whose CRC fails, an IHDR that is not an image, or a size past
+    MAX_DECODE_PIXELS (a decompression bomb). A zlib stream that is broken while its CRCs hold
+    is left to libpng."""
+    n, pos, seen_ihdr, view = len(data), 8, False, memoryview(data)
+    while True:
+        if pos + 12 > n:
+            raise ImageReadError(f"{name}: not a readable image (truncated PNG: {n} bytes, no IEND chunk)")
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        kind = data[pos + 4:pos + 8]
+        end = pos + 12 + length
+        chunk = f"chunk {kind.decode('latin-1')} at byte {pos}"
+        if length > 0x7FFFFFFF or end > n:
+            raise ImageReadError(f"{name}: not a readable image (truncated PNG: {chunk} runs past the end)")
+        if zlib.crc32(view[pos + 4:end - 4]) != int.from_bytes(data[end - 4:end], "big"):
+            raise ImageReadError(f"{name}: not a readable image (corrupt PNG: {chunk} fails its CRC)")
+        if not seen_ihdr:
+            if kind != b"IHDR" or length != 13:
+                raise ImageReadError(f"{name}: not a readable image (corrupt PNG: no IHDR chunk first)")
+            w, h = int.from_bytes(data[pos + 8:pos + 12], "big"), int.from_bytes(data[pos + 12:pos + 16], "big")
+            if not (0 < w <= MAX_DECODE_SIDE and 0 < h <= MAX_DECODE_SIDE) or w * h > MAX_DECODE_PIXELS:
+                raise ImageReadError(f"{name}: not a readable image (a PNG of {w}x{h} pixels, more than the "
+                                     f"{MAX_DECODE_PIXELS} pixels or {MAX_DECODE_SIDE} per side dofsynth decodes: a "
+                                     "decompression bomb, not a photo)")
+            seen_ihdr = True
+        if kind == b"IEND":
+            return
+        pos = end
+
+
 def decode_image(data: bytes, name: str = "<bytes>", raw: bool = False) -> np.ndarray:
     """Decode PNG/JPEG/TIFF/WebP bytes (8 or 16 bit) to (H, W, C), RGB(A) order: float32 in
-    [0, 1], or with `raw` the stored codes (uint8, uint16 or float) as a contiguous array."""
+    [0, 1], or with `raw` the stored codes (uint8, uint16 or float) as a contiguous array.
+    A file that cannot be decoded is one ImageReadError line naming it (PNGs: `check_png`)."""
+    if data[:8] == _PNG_SIGNATURE:
+        check_png(data, name)
     buf = np.frombuffer(data, dtype=np.uint8)
     try:
         img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
-    except cv2.error as exc:
-        raise ImageReadError(f"{name}: not a readable image ({exc})") from exc
+    except cv2.error as exc:  # OpenCV's text runs over lines: its message part, in one
+        why = " ".join((exc.err or str(exc)).split())
+        raise ImageReadError(f"{name}: not a readable image ({why})") from None
     if img is None:
         raise ImageReadError(f"{name}: not a readable image (corrupt, truncated or unknown format)")
     img = np.ascontiguousarray(swap_rb(img))

@@ -29,10 +29,14 @@ BUILTIN = "builtin"
 dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
 
 
+MAX_SAMPLES = 10_000_000   # per split: sample keys have 7 digits ("train-0000042")
+MAX_SHARDS = 1_000_000     # per split: shard names have 6 digits ("train-000042.tar")
+
+
 @dataclass_kw
 class Samples:
-    train: int = key(lo=0)
-    test: int = key(lo=0)
+    train: int = key(lo=0, hi=MAX_SAMPLES)
+    test: int = key(lo=0, hi=MAX_SAMPLES)
 
     def count(self, split: str) -> int:
         return {"train": self.train, "test": self.test}[split]
@@ -205,6 +209,11 @@ def _check(r: Recipe, file: str, given_render: dict) -> None:
     ramp that falls, planes in front."""
     if r.samples.train + r.samples.test == 0:
         raise ConfigError(f"{file}: samples: expected at least one sample in train or test, got 0")
+    for split in ("train", "test"):
+        n = r.samples.count(split)
+        if -(-n // r.shard_size) > MAX_SHARDS:
+            raise error(file, f"samples.{split}", f"at most shard_size x {MAX_SHARDS} = {r.shard_size * MAX_SHARDS} "
+                        f"samples (shard names have 6 digits; raise shard_size)", n)
     _check_render(r, given_render, file)
     fo = r.focus
     if fo.lens.enabled:

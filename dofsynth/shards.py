@@ -204,29 +204,57 @@ def _key_member(name: str) -> tuple[str, str]:
     return key, member
 
 
-def _entries(path: Path) -> Iterator[tuple[str, str, tarfile.TarInfo, tarfile.TarFile]]:
+class _HashingReader(io.RawIOBase):
+    """A file read front to back, hashed as it goes (a tar stream's source)."""
+
+    def __init__(self, fh):
+        self._fh, self.hash = fh, hashlib.sha256()
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, b) -> int:
+        n = self._fh.readinto(b)
+        self.hash.update(memoryview(b)[:n])
+        return n
+
+    def drain(self) -> str:
+        """Read (and hash) what is left; the hex digest of the whole file."""
+        while self.read(1 << 20):
+            pass
+        return self.hash.hexdigest()
+
+
+def _entries(path: Path, sha256: str | None = None) -> Iterator[tuple[str, str, tarfile.TarInfo, tarfile.TarFile]]:
     """(key, suffix, header, open tar) of every regular member of a shard in file order, then
-    the end-of-archive check: the one place a shard is opened for reading. `ShardError` names a
-    bad file."""
+    the end-of-archive check: the one place a shard is opened for reading. With `sha256`, the
+    file is read as a stream, every byte hashed, and a file whose hash differs fails at its
+    end. `ShardError` names a bad file."""
     try:
-        with tarfile.open(path, "r:") as tar:
-            for info in tar:
-                if info.isfile():
-                    yield (*_key_member(info.name), info, tar)
-            end = tar.offset
+        with open(path, "rb") as raw:
+            src = _HashingReader(raw) if sha256 else raw
+            with tarfile.open(fileobj=src, mode="r|" if sha256 else "r:") as tar:
+                for info in tar:
+                    if info.isfile():
+                        yield (*_key_member(info.name), info, tar)
+                end = tar.offset
+            if sha256 and src.drain() != sha256:
+                raise ShardError(f"{path}: sha256 differs from the manifest's (the shard is damaged or was "
+                                 "rewritten); verify the data set (dofsynth verify) or make it again")
     except (tarfile.TarError, EOFError, OSError) as exc:
         raise ShardError(f"{path}: unreadable tar ({exc})") from exc
     _check_end(path, end)
 
 
-def iter_members(path: str | os.PathLike, keys=None, data: bool = True,
-                 suffix: str | None = None) -> Iterator[tuple[str, str, bytes | None]]:
+def iter_members(path: str | os.PathLike, keys=None, data: bool = True, suffix: str | None = None,
+                 sha256: str | None = None) -> Iterator[tuple[str, str, bytes | None]]:
     """(key, suffix, bytes) of every regular member of a shard in file order; with `keys`,
     only the members of those samples, with `suffix` only those members (e.g. "json": the
     others' data is skipped, not read); with `data=False`, None instead of the bytes (headers
-    only). `ShardError` names a bad file."""
+    only); with `sha256`, the whole file is read and checked against it (at its end).
+    `ShardError` names a bad file."""
     path = Path(path)
-    for key, member, info, tar in _entries(path):
+    for key, member, info, tar in _entries(path, sha256):
         if (keys is not None and key not in keys) or (suffix is not None and member != suffix):
             continue
         blob = None
@@ -240,10 +268,11 @@ def iter_members(path: str | os.PathLike, keys=None, data: bool = True,
         yield key, member, blob
 
 
-def read_shard(path: str | os.PathLike, keys=None) -> Iterator[tuple[str, dict[str, bytes]]]:
-    """Yield (key, {suffix: bytes}) per sample in file order (only `keys`, if given)."""
+def read_shard(path: str | os.PathLike, keys=None, sha256: str | None = None) -> Iterator[tuple[str, dict[str, bytes]]]:
+    """Yield (key, {suffix: bytes}) per sample in file order (only `keys`, if given); with
+    `sha256`, the whole file is hashed as it is read and a mismatch raises ShardError at its end."""
     current, members = None, {}
-    for key, suffix, blob in iter_members(path, keys):
+    for key, suffix, blob in iter_members(path, keys, sha256=sha256):
         if current is not None and key != current:
             yield current, members
             members = {}
@@ -253,20 +282,12 @@ def read_shard(path: str | os.PathLike, keys=None) -> Iterator[tuple[str, dict[s
         yield current, members
 
 
-def shard_keys(path: str | os.PathLike) -> list[str]:
-    """Sample keys of a shard in file order (reads headers only, not the member data)."""
-    keys: list[str] = []
-    for key, _, _ in iter_members(path, data=False):
-        if not keys or keys[-1] != key:
-            keys.append(key)
-    return keys
-
-
-def member_index(path: str | os.PathLike) -> dict[str, dict[str, tuple[int, int]]]:
+def member_index(path: str | os.PathLike, sha256: str | None = None) -> dict[str, dict[str, tuple[int, int]]]:
     """{key: {suffix: (byte offset of the data, size)}} of a shard, from its headers only: for
-    random access to samples (`read_members`). `ShardError` names a bad file."""
+    random access to samples (`read_members`); with `sha256`, the whole file is read and
+    checked against it. `ShardError` names a bad file."""
     index: dict[str, dict[str, tuple[int, int]]] = {}
-    for key, member, info, _ in _entries(Path(path)):
+    for key, member, info, _ in _entries(Path(path), sha256):
         index.setdefault(key, {})[member] = (info.offset_data, info.size)
     return index
 

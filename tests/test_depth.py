@@ -341,7 +341,7 @@ def test_two_processes_under_torchrun_train_the_depth_network(smoke_set, tmp_pat
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
            "-m", "dofsynth", "--", "train", "train-depth-tiny", "--data", str(smoke_set), "--run", str(run),
            "--device", "cpu", "--steps", "2", "-q"]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads((run / "env.json").read_text())["world_size"] == 2
     with open(run / "log.csv") as fh:

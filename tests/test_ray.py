@@ -49,7 +49,17 @@ def kill_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def cluster():
-    ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING", log_to_driver=False)
+    """A local 2-CPU cluster. Ray waits a fixed 30 s for its raylet to register; on a machine
+    at load 30-40 that is not always enough, so start-up is tried again (up to 4 times, 2 min
+    or more) before the tests fail."""
+    for attempt in range(4):
+        try:
+            ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING", log_to_driver=False)
+            break
+        except Exception as exc:  # Ray raises a bare Exception for a start-up timeout
+            ray.shutdown()
+            if "timed out during startup" not in str(exc) or attempt == 3:
+                raise
     yield
     ray.shutdown()
 

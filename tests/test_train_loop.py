@@ -316,7 +316,7 @@ def test_two_processes_under_torchrun_train_together_and_rank0_writes(setup, tmp
            "-m", "dofsynth", "--", "train", str(cfg_path), "--data", str(data), "--run", str(run),
            "--device", "cpu", "--steps", "2"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env=env)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, env=env)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads((run / "env.json").read_text())["world_size"] == 2
     assert checkpoint.load(run / "ckpt.pt")["step"] == 2

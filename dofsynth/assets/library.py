@@ -58,12 +58,14 @@ class AssetLibrary:
 
     def __init__(self, backgrounds: list[Asset], foregrounds: list[Asset], splits: dict[str, str],
                  skipped: list[tuple[str, str]] | None = None, rules: AssetSources | None = None,
-                 cache_bytes: int | None = None, groups: list[list[str]] | None = None):
+                 cache_bytes: int | None = None, groups: list[list[str]] | None = None,
+                 links: list[tuple[str, str]] | None = None):
         self.backgrounds = sorted(backgrounds, key=lambda a: a.id)
         self.foregrounds = sorted(foregrounds, key=lambda a: a.id)
         self.splits = dict(splits)
         self.skipped = list(skipped or [])
         self.groups = list(groups or [])  # near-duplicate assets that share a split (perceptual hash)
+        self.links = list(links or [])    # symbolic links the scan followed: (path, target)
         self.rules = rules or AssetSources(backgrounds=BUILTIN, foregrounds=BUILTIN)
         self._by_id = {a.id: a for a in (*self.backgrounds, *self.foregrounds)}
         self._cache: OrderedDict[str, object] = OrderedDict()
@@ -252,7 +254,7 @@ def build_library(recipe: Recipe) -> AssetLibrary:
     groups = [g for kind in (bgs, fgs) for g in near_duplicate_groups({a.id: a.phash for a in kind if a.phash is not None})]
     splits = {**assign_splits(bgs, recipe.seed, src.test_share, need, groups),
               **assign_splits(fgs, recipe.seed, src.test_share, {s: 2 * n for s, n in need.items()}, groups)}
-    lib = AssetLibrary(bgs, fgs, splits, scan.skipped, rules=src, groups=groups)
+    lib = AssetLibrary(bgs, fgs, splits, scan.skipped, rules=src, groups=groups, links=scan.links)
     for split in SPLITS:
         if need[split]:
             nb, nf = len(lib.assets_for("background", split)), len(lib.assets_for("foreground", split))

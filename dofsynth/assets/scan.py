@@ -10,6 +10,7 @@ stops the scan with `AssetError` naming it ("stop"). With `verify = "header"` on
 """
 from __future__ import annotations
 
+import os
 import re
 import sys
 from dataclasses import dataclass, field
@@ -25,11 +26,41 @@ from dofsynth.files import sha256_bytes
 from dofsynth.io import IMAGE_SUFFIXES
 
 
+def walk_images(root: Path) -> tuple[list[Path], list[tuple[str, str]]]:
+    """(image files under `root`, recursively, sorted by relative path; the symbolic links
+    among them and their folders as (path relative to root, target)). Hidden names are
+    skipped. Symbolic links are followed, to files and to folders (matting sets are often
+    assembled from links), and listed, so a library says what it reached through them; a
+    folder link that leads back into a folder already walked is not followed twice."""
+    files, links, seen = [], [], {os.path.realpath(root)}
+    for dirpath, dirnames, filenames in os.walk(root, followlinks=True):
+        here = Path(dirpath)
+        keep = []
+        for d in sorted(dirnames):
+            full = here / d
+            if d.startswith("."):
+                continue
+            real = os.path.realpath(full)
+            if full.is_symlink():
+                links.append((full.relative_to(root).as_posix(), real))
+            if real in seen:
+                continue
+            seen.add(real)
+            keep.append(d)
+        dirnames[:] = keep
+        for f in filenames:
+            full = here / f
+            if f.startswith(".") or full.suffix.lower() not in IMAGE_SUFFIXES or not full.is_file():
+                continue
+            files.append(full)
+            if full.is_symlink():
+                links.append((full.relative_to(root).as_posix(), os.path.realpath(full)))
+    return sorted(files, key=lambda p: p.relative_to(root).as_posix()), sorted(links)
+
+
 def image_files(root: Path) -> list[Path]:
-    """Image files under `root`, recursively, sorted by relative path (hidden names skipped)."""
-    out = [p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-           and not any(part.startswith(".") for part in p.relative_to(root).parts)]
-    return sorted(out, key=lambda p: p.relative_to(root).as_posix())
+    """The image files of `walk_images`."""
+    return walk_images(root)[0]
 
 
 def rel_id(root: Path, p: Path) -> str:
@@ -72,12 +103,13 @@ def read_sources_licences(folder: Path) -> dict[str, str]:
 
 @dataclass
 class Scan:
-    """What a scan found: the assets, the skipped files (path, reason) and the sha256 of every
-    file it read (absolute path -> hex)."""
+    """What a scan found: the assets, the skipped files (path, reason), the sha256 of every
+    file it read (absolute path -> hex) and the symbolic links it followed (path, target)."""
 
     assets: list[Asset] = field(default_factory=list)
     skipped: list[tuple[str, str]] = field(default_factory=list)
     hashes: dict[str, str] = field(default_factory=dict)
+    links: list[tuple[str, str]] = field(default_factory=list)
 
 
 class Scanner:
@@ -186,9 +218,16 @@ def _progress(files: list[Path], what: str):
     return track(files, f"scan {what}", "file", enabled=len(files) >= 500)
 
 
+def _images(root: Path, sc: Scanner) -> list[Path]:
+    """The image files under `root`; the links followed to them go into the scan."""
+    files, links = walk_images(root)
+    sc.out.links += [(str(root / rel), target) for rel, target in links]
+    return files
+
+
 def scan_backgrounds(root: Path, sc: Scanner) -> list[Asset]:
     n = len(sc.out.assets)
-    for p in _progress(image_files(root), "backgrounds"):
+    for p in _progress(_images(root, sc), "backgrounds"):
         sc.background(root, p)
     return sc.unique(sc.out.assets[n:])
 
@@ -198,9 +237,9 @@ def scan_foregrounds(root: Path, sc: Scanner) -> list[Asset]:
     fg, al = root / sc.rules.fg_dir, root / sc.rules.alpha_dir
     if is_paired_layout(root, sc.rules.fg_dir, sc.rules.alpha_dir):
         alphas: dict[str, list[Path]] = {}
-        for a in image_files(al):
+        for a in _images(al, sc):
             alphas.setdefault(rel_id(al, a), []).append(a)
-        for p in _progress(image_files(fg), "foregrounds"):
+        for p in _progress(_images(fg, sc), "foregrounds"):
             found = alphas.pop(rel_id(fg, p), [])
             if len(found) != 1:
                 why = "no matte" if not found else "several mattes: " + ", ".join(map(str, found))
@@ -211,6 +250,6 @@ def scan_foregrounds(root: Path, sc: Scanner) -> list[Asset]:
             for a in left:
                 sc.bad(str(a), f"alpha without a foreground (no {fg / stem}.* )")
     else:
-        for p in _progress(image_files(root), "foregrounds"):
+        for p in _progress(_images(root, sc), "foregrounds"):
             sc.cutout(root, p)
     return sc.unique(sc.out.assets[n:])

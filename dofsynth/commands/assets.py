@@ -53,6 +53,10 @@ def run_check(args: argparse.Namespace) -> int:
     print("  licences (assets under each):")
     for lic, n in sorted(licences.items()):
         print(f"    {n:6d}  {lic}")
+    if lib.links:
+        print(f"  followed {len(lib.links)} symbolic links (files and folders under the asset folders):")
+        for path, target in lib.links:
+            print(f"    {path} -> {target}")
     print(f"  skipped {len(lib.skipped)} files" + (":" if lib.skipped else ""))
     for path, reason in lib.skipped:
         print(f"    {reason if reason.startswith(path) else path + ': ' + reason}")

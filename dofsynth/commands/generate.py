@@ -75,10 +75,13 @@ def register(subparsers) -> None:
     p.set_defaults(func=run, resume_hint=resume_hint)
 
 
-def resume_hint(args) -> str:
-    """What to run to finish the data set after this run stopped (kept shards stay)."""
+def resume_hint(args) -> str | None:
+    """What to run to finish the data set after this run stopped (kept shards stay); None for
+    a run that writes nothing (--plan, or no --out)."""
     import shlex
 
+    if args.plan or not args.out:
+        return None
     cmd = ["dofsynth", "generate", args.recipe, "--out", str(args.out)]
     for flag, value in (("--split", None if args.split == "all" else args.split), ("--limit", args.limit),
                         ("--shards", args.shards), ("--workers", args.workers),
@@ -90,17 +93,18 @@ def resume_hint(args) -> str:
 
 
 def print_plan(recipe, splits, limit) -> None:
-    from dofsynth.generate import plan_shards
+    """The plan's global shard numbers per split, counted (its size costs no memory)."""
+    from dofsynth.generate.plan import shard_count, split_size
 
-    tasks = plan_shards(recipe, splits, limit)
-    print(f"{recipe.path}: {len(tasks)} shards of up to {recipe.shard_size} samples"
+    counts = {s: shard_count(recipe, s, limit) for s in splits}
+    total = sum(counts.values())
+    print(f"{recipe.path}: {total} shards of up to {recipe.shard_size} samples"
           + (f" (limit {limit} per split)" if limit is not None else ""))
     g = 0
     for s in splits:
-        mine = [t for t in tasks if t.split == s]
-        print(f"  {s:5s} --shards {g}:{g + len(mine)}  ({sum(t.samples for t in mine)} samples)")
-        g += len(mine)
-    print(f"  total {len(tasks)}")
+        print(f"  {s:5s} --shards {g}:{g + counts[s]}  ({split_size(recipe, s, limit)} samples)")
+        g += counts[s]
+    print(f"  total {total}")
 
 
 def run(args) -> int:

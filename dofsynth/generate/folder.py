@@ -3,15 +3,14 @@ temp files a killed run leaves.
 
 - Without `resume`, an OUT holding anything is refused (never silently mixed); a `--shards`
   run accepts only the work of other ranges of the same recipe and plan.
-- With `resume`, shards already there are verified (sha256 against the progress file or old
-  manifest, else their sample keys) and kept; the rest are made; a resumed data set is
-  byte-identical to an uninterrupted one.
+- With `resume`, shards already there are kept when their size and sha256 are what the
+  progress file or old manifest recorded; the rest, a shard never recorded included, are
+  made; a resumed data set is byte-identical to an uninterrupted one.
 - Leftover temp files of a killed run (or of a killed Ray task) are removed, only while the
   run holds OUT's lock.
 """
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 from dofsynth import __version__
@@ -23,7 +22,7 @@ from dofsynth.manifest.names import MANIFEST_NAME, PART_RE, PROGRESS_NAME, PROGR
 from dofsynth.manifest.parts import load_part
 from dofsynth.manifest.progress import read_progress
 from dofsynth.rng import SPLITS
-from dofsynth.shards import ShardError, ShardInfo, shard_keys
+from dofsynth.shards import ShardInfo
 
 
 class OutputNotEmptyError(ValueError):
@@ -100,26 +99,23 @@ def previous_state(out: Path, recipe, assets: dict) -> tuple[dict[str, int | Non
 
 
 def verify_existing(out: Path, task: ShardTask, known: dict[str, ShardInfo]) -> ShardInfo | None:
-    """The ShardInfo of an already-written shard that matches the plan, or None. A shard that
-    is there but does not match (another hash than recorded, other keys) is deleted at once:
-    it is remade, and a later resume must not take it for one never recorded."""
+    """The ShardInfo of an already-written shard whose content is proven: the plan's shard,
+    with the size and sha256 its run recorded. Any other shard at that name is deleted at once
+    and remade: one that differs from its record, and one never recorded (its run was killed
+    between the rename and the progress line, so nothing ever hashed its bytes: a damaged
+    one would otherwise be kept on its sample keys and its bad hash go into the manifest)."""
     final = out / task.path
     if not final.is_file():
         return None
-    sha, nbytes = sha256_file(final)
-    info = ShardInfo(task.split, task.index, task.name, task.first_index, task.samples, sha, nbytes)
     rec = known.get(task.path)
-    if rec is not None and (rec.first_index, rec.samples) == (task.first_index, task.samples):
+    ok = rec is not None and (rec.first_index, rec.samples) == (task.first_index, task.samples)
+    if ok:
+        sha, nbytes = sha256_file(final)
         ok = (rec.sha256, rec.bytes) == (sha, nbytes)
-    else:  # not recorded (killed between rename and progress line): check its sample keys
-        try:
-            ok = shard_keys(final) == task.keys()
-        except ShardError:
-            ok = False
     if not ok:
         final.unlink()
         return None
-    return replace(info, usage=rec.usage) if rec is not None else info
+    return ShardInfo(task.split, task.index, task.name, task.first_index, task.samples, sha, nbytes, usage=rec.usage)
 
 
 def remove_shard_temps(out: Path, paths: set[str] | None = None) -> list[str]:

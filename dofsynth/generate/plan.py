@@ -42,6 +42,11 @@ def split_size(recipe, split: str, limit: int | None = None) -> int:
     return n
 
 
+def shard_count(recipe, split: str, limit: int | None = None) -> int:
+    """How many shards `split` has in the plan (arithmetic: no task list is built)."""
+    return -(-split_size(recipe, split, limit) // int(recipe.shard_size))
+
+
 def plan_split(recipe, split: str, limit: int | None = None) -> list[ShardTask]:
     n, size = split_size(recipe, split, limit), int(recipe.shard_size)
     return [ShardTask(split, k, first, min(size, n - first)) for k, first in enumerate(range(0, n, size))]

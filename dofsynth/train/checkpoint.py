@@ -19,6 +19,7 @@ from dofsynth.files import AtomicFile
 from dofsynth.train.config import Config, from_dict
 from dofsynth.train.depth import DepthNet
 from dofsynth.train.models import DeepLensNet
+from dofsynth.train.weights import first_line, load_weights_file
 
 CHECKPOINT = "ckpt.pt"
 FORMAT = 2  # 2: the networks' module names changed ([model] norm, up_depth, ...)
@@ -59,10 +60,14 @@ def save(path: str | Path, model, optimizer, step: int, epoch: int, batch: int, 
 
 
 def load(path: str | Path, map_location="cpu") -> dict:
+    """A dofsynth checkpoint (the module docstring's dict), loaded without executing code."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no checkpoint")
-    state = torch.load(path, map_location=map_location, weights_only=False)
+    state = load_weights_file(path, "a dofsynth checkpoint (ckpt.pt of a training run)", map_location)
+    if not isinstance(state, dict) or not {"model", "config", "format"} <= set(state):
+        kind = type(state).__name__ if not isinstance(state, dict) else f"a dict with keys {sorted(state)[:4]}"
+        raise ValueError(f"{path}: not a dofsynth checkpoint (ckpt.pt of a training run): it holds {kind}")
     if state.get("format") != FORMAT:
         raise ValueError(f"{path}: checkpoint format {state.get('format')}, expected {FORMAT}")
     return state
@@ -81,5 +86,9 @@ def load_model(run_dir: str | Path, device="cpu") -> tuple[DeepLensNet | DepthNe
     state = load(path)
     cfg = from_dict(state["config"], str(path))
     model = build_model(cfg)
-    model.load_state_dict(state["model"])
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:
+        raise ValueError(f"{path}: its weights do not fit the network its config describes: "
+                         f"{first_line(exc)}") from None
     return model.to(device).eval(), cfg

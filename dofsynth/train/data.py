@@ -33,6 +33,7 @@ are not decoded, and what follows is what the uninterrupted run would have read.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import random
 import signal
@@ -62,11 +63,15 @@ PARTS = ("all", "fit", "val")  # a whole split; train without / only its validat
 
 @dataclass(frozen=True)
 class Segment:
-    """Consecutive samples [lo, hi) (indices) of one shard file."""
+    """Consecutive samples [lo, hi) (indices) of one shard file, and the file's sha256 in the
+    manifest (checked the first time a process reads the file)."""
     path: str
     lo: int
     hi: int
+    sha256: str | None = None
 
+
+_CHECKED: set[tuple[str, str]] = set()  # (shard path, sha256) this process has read whole and found right
 
 def held_out(n: int, val_share: float) -> int:
     """How many of n train samples the validation share holds (at least 1 when share > 0 and n >= 2)."""
@@ -82,7 +87,7 @@ def find_segments(data_dir: str | Path, split: str, part: str = "all", val_share
     n = sum(i.samples for i in infos)
     cut = n - held_out(n, val_share)
     lo, hi = {"all": (0, n), "fit": (0, cut), "val": (cut, n)}[part]
-    segs = [Segment(str(data_dir / i.path), max(lo, i.first_index), min(hi, i.first_index + i.samples))
+    segs = [Segment(str(data_dir / i.path), max(lo, i.first_index), min(hi, i.first_index + i.samples), i.sha256)
             for i in infos]
     segs = [s for s in segs if s.hi > s.lo]
     if not segs:
@@ -92,14 +97,20 @@ def find_segments(data_dir: str | Path, split: str, part: str = "all", val_share
 
 def raw_samples(shards, split: str | None = None) -> Iterator[dict]:
     """Every sample of the shards (paths, or Segments with `split` given) as a webdataset-style
-    dict: {"__key__": key, "__url__": the shard's path, suffix: bytes}."""
+    dict: {"__key__": key, "__url__": the shard's path, suffix: bytes}. A Segment's shard is
+    checked against its manifest sha256 the first time this process reads it (read whole,
+    hashed as it streams; a damaged shard raises ShardError naming it at its end, so even a
+    member that is never drawn stops the run), then read as needed."""
     for shard in shards:
-        keys = None
+        keys, sha = None, None
         if isinstance(shard, Segment):
             keys = {sample_key(split, i) for i in range(shard.lo, shard.hi)}
+            sha = shard.sha256 if (shard.path, shard.sha256) not in _CHECKED else None
             shard = shard.path
-        for key, members in read_shard(shard, keys):
+        for key, members in read_shard(shard, keys, sha256=sha):
             yield {"__key__": key, "__url__": str(shard), **members}
+        if sha:
+            _CHECKED.add((str(shard), sha))
 
 
 def area_downsample(x: np.ndarray, factor: int) -> np.ndarray:
@@ -220,7 +231,7 @@ def share(segments: list[Segment], start: int, stop: int) -> list[Segment]:
         n = seg.hi - seg.lo
         a, b = max(start, pos), min(stop, pos + n)
         if b > a:
-            out.append(Segment(seg.path, seg.lo + a - pos, seg.lo + b - pos))
+            out.append(dataclasses.replace(seg, lo=seg.lo + a - pos, hi=seg.lo + b - pos))
         pos += n
     return out
 
@@ -297,6 +308,29 @@ class DofShards(IterableDataset):
     def _shuffle(self, items, seed: int):
         size = self.cfg.data.shuffle_buffer
         return wds.shuffle(size, min(size, 64), rng=random.Random(seed))(items)
+
+
+def from_workers(loader):
+    """Iterate a DataLoader; an error raised in one of its worker processes comes out as the
+    error itself, whose message names the file and sample (torch re-raises it wrapped in the
+    worker's traceback, which is no one-line message)."""
+    it = iter(loader)
+    while True:
+        try:
+            batch = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:
+            text = str(exc)
+            if not (text.startswith("Caught ") and "Original Traceback" in text):
+                raise
+            last = text.rstrip().splitlines()[-1]
+            try:
+                plain = type(exc)(last.split(": ", 1)[1] if ": " in last else last)
+            except Exception:  # an error type that takes other arguments: leave it as torch gave it
+                raise exc from None
+            raise plain from None
+        yield batch
 
 
 def quiet_worker(_worker_id: int) -> None:

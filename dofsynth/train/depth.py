@@ -29,6 +29,7 @@ from torch import nn
 
 from dofsynth.train.config import DepthConfig
 from dofsynth.train.models import area_resize, bilinear, block
+from dofsynth.train.weights import load_weights_file, unwrap_state_dict
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -161,11 +162,7 @@ def load_backbone(model: DepthNet, path: str | Path) -> int:
         raise FileNotFoundError(f"[depth] weights {path}: no such file (give a torchvision ImageNet state_dict "
                                 "of the backbone, e.g. resnet50-0676ba61.pth, or leave weights empty for "
                                 "random initialisation)")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many kinds for a file that is not a checkpoint
-        raise ValueError(f"[depth] weights {path}: not a PyTorch state_dict file ({exc})") from None
-    state = state.get("state_dict", state) if isinstance(state, dict) else state
+    state, how = unwrap_state_dict(load_weights_file(path, "a PyTorch state_dict file"))
     if not isinstance(state, dict):
         raise ValueError(f"[depth] weights {path}: holds a {type(state).__name__}, not a state_dict")
     own = model.encoder.state_dict()
@@ -175,7 +172,8 @@ def load_backbone(model: DepthNet, path: str | Path) -> int:
     if missing or wrong:
         what = (f"{len(missing)} of {len(own)} backbone tensors missing (e.g. {', '.join(missing[:3])})" if missing
                 else f"shapes differ: {', '.join(wrong[:3])}")
-        raise ValueError(f"[depth] weights {path}: does not fit [depth] backbone/width: {what}")
+        raise ValueError(f"[depth] weights {path}: does not fit [depth] backbone/width: {what}"
+                         f"{f' (after {how})' if how else ''}")
     model.encoder.load_state_dict({k: state[k] for k in own})
     return len(own)
 

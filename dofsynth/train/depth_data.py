@@ -50,10 +50,12 @@ DEPTH_SUFFIXES = (".exr", ".png", ".tif", ".tiff", ".npy")
 @dataclass(frozen=True)
 class Item:
     """One training sample: kind "shard" (path = shard, other = sample key), "rgbd" (path =
-    the RGB file, other = its depth file) or "matte" (path = fg file, other = alpha file)."""
+    the RGB file, other = its depth file) or "matte" (path = fg file, other = alpha file);
+    a shard's sha256 in the manifest (checked when a process first indexes the shard)."""
     kind: str
     path: str
     other: str
+    sha256: str | None = None
 
 
 def pair_files(root: str | Path, a: str, b: str, b_suffixes: tuple[str, ...]) -> list[tuple[Path, Path]]:
@@ -77,7 +79,7 @@ def pair_files(root: str | Path, a: str, b: str, b_suffixes: tuple[str, ...]) ->
 
 
 def shard_items(data_dir: str | Path, split: str, part: str, val_share: float) -> list[Item]:
-    return [Item("shard", seg.path, sample_key(split, i))
+    return [Item("shard", seg.path, sample_key(split, i), seg.sha256)
             for seg in find_segments(data_dir, split, part, val_share) for i in range(seg.lo, seg.hi)]
 
 
@@ -112,7 +114,7 @@ def load_item(item: Item, quantity: str = "depth", index_cache: dict | None = No
     if item.kind == "shard":
         cache = {} if index_cache is None else index_cache
         if item.path not in cache:
-            cache[item.path] = member_index(item.path)
+            cache[item.path] = member_index(item.path, item.sha256)  # read whole and hashed, once
         if item.other not in cache[item.path]:
             raise ValueError(f"{item.path}: no sample {item.other}")
         m = read_members(item.path, cache[item.path][item.other])

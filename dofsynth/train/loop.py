@@ -38,7 +38,7 @@ from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
 from dofsynth.rng import stream_int
 from dofsynth.train import checkpoint
 from dofsynth.train.config import Config, from_dict, to_toml
-from dofsynth.train.data import make_loader, resolve
+from dofsynth.train.data import from_workers, make_loader, resolve
 from dofsynth.train.depth import depth_loss, depth_mae, load_backbone
 from dofsynth.train.depth_data import make_depth_loader
 from dofsynth.train.loss import deeplens_loss
@@ -62,7 +62,7 @@ def batch_stream(dataset, loader, epoch: int, skip: int):
     while True:
         dataset.set_epoch(epoch, skip_batches=skip)
         n = 0
-        for i, batch in enumerate(loader, start=skip):
+        for i, batch in enumerate(from_workers(loader), start=skip):
             n += 1
             yield epoch, i, batch
         if n == 0 and skip == 0:
@@ -129,7 +129,7 @@ def evaluate(model, loader, cfg: Config, device, autocast) -> dict:
     train.eval_batches batches when that is > 0), all ranks together."""
     model.eval()
     totals = torch.zeros(4, device=device, dtype=torch.float64)  # loss sum, batches, score sum, samples
-    for i, batch in enumerate(loader):
+    for i, batch in enumerate(from_workers(loader)):
         if cfg.train.eval_batches and i >= cfg.train.eval_batches:
             break
         b = to_device(batch, device)
