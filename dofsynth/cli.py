@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Run `dofsynth COMMAND --help` for the options of each command.",
     )
     parser.add_argument("--version", action="version", version=f"dofsynth {__version__}")
+    _add_common(parser, top=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         module = importlib.import_module(f"dofsynth.commands.{info.name}")
@@ -55,17 +56,21 @@ def _leaf_parsers(action) -> list[argparse.ArgumentParser]:
     return out
 
 
-def _add_common(p: argparse.ArgumentParser) -> None:
-    """The options every command has, with one meaning everywhere (dofsynth.progress)."""
+def _add_common(p: argparse.ArgumentParser, top: bool = False) -> None:
+    """The options every command has, with one meaning everywhere (dofsynth.progress); they go
+    before the command too (`dofsynth -q verify OUT`): a command's own copy does not reset
+    what was given before it."""
     g = p.add_argument_group("output")
     loud = g.add_mutually_exclusive_group()
-    loud.add_argument("-q", "--quiet", action="store_true",
+    unset = {} if top else {"default": argparse.SUPPRESS}
+    loud.add_argument("-q", "--quiet", action="store_true", **unset,
                       help="no progress bars and no summaries (errors still print)")
-    loud.add_argument("-v", "--verbose", action="store_true", help="more detail, e.g. a line per finished shard")
+    loud.add_argument("-v", "--verbose", action="store_true", **unset,
+                      help="more detail, e.g. a line per finished shard")
 
 
 # The optional dependencies some commands need, and the extra that installs them.
-EXTRAS = {"torch": "train", "webdataset": "train", "ray": "ray"}
+EXTRAS = {"torch": "train", "webdataset": "train", "tomli_w": "train", "ray": "ray"}
 
 
 def _missing_extra(exc: ImportError) -> str | None:
@@ -85,9 +90,11 @@ def _os_error(exc: OSError) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run one command; every failure ends in one line on stderr and a non-zero status: 2 for a
-    problem with the input, 1 for a failure while working (a full disk, a dead worker), 130 on
-    Ctrl-C, 143 on SIGTERM. A command that can continue later says how (`resume_hint`)."""
+    """Run one command; every failure ends in one line on stderr and a non-zero status, by one
+    rule for every command: 2 for bad input or usage (a bad value or file, a path that exists
+    or cannot be written), 1 for a failure while working (a full disk, a dead worker, a check
+    that found problems), 130 on Ctrl-C, 143 on SIGTERM. A command that can continue later
+    says how (`resume_hint`)."""
     main_thread = threading.current_thread() is threading.main_thread()
     if main_thread:  # first: a signal while the parser imports the commands is handled too
         signal.signal(signal.SIGTERM, _terminate)
@@ -98,6 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         if not getattr(args, "func", None):
             parser.print_help()
             return 2
+        if args.quiet and args.verbose:
+            raise ValueError("-q/--quiet and -v/--verbose: give one of them")
         progress.set_verbosity(args.quiet, args.verbose)
         hint = getattr(args, "resume_hint", None)
         again = f"; {line}" if hint and (line := hint(args)) else ""
@@ -111,6 +120,9 @@ def main(argv: list[str] | None = None) -> int:
         if line is None:
             raise
         print(f"{name}: error: {line}", file=sys.stderr)
+        return 2
+    except (FileExistsError, IsADirectoryError, NotADirectoryError, PermissionError) as exc:
+        print(f"{name}: error: {_os_error(exc)}", file=sys.stderr)  # a path given that cannot be used: input
         return 2
     except OSError as exc:
         print(f"{name}: error: {_os_error(exc)}{again}", file=sys.stderr)

@@ -85,6 +85,19 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     return Path(path)
 
 
+def check_writable(path: str | os.PathLike, what: str) -> Path:
+    """Refuse, before any work, a file that cannot be written: its folder (or the nearest
+    existing parent, which would hold it) must be writable. ValueError names it and `what`."""
+    path = Path(path)
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not os.access(folder, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise ValueError(f"{path}: cannot write the {what} there ({folder} is read-only); give another path "
+                         "for it")
+    return path
+
+
 def remove_temp_files(folder: str | os.PathLike) -> list[Path]:
     """Delete leftover temporary files directly in `folder`; returns what was removed. Call
     only while holding the folder's lock (a live writer's temp file looks the same)."""

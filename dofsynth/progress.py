@@ -8,6 +8,7 @@ still print) and `-v/--verbose` (more detail) are the same on every command: the
 """
 from __future__ import annotations
 
+import os
 import sys
 import time
 
@@ -96,8 +97,13 @@ def bar(total: int | None, desc: str, unit: str = "sample", *, initial: int = 0,
         return LineProgress(total, desc, unit, initial)
     from tqdm import tqdm
 
-    return tqdm(total=total, initial=initial, desc=desc, unit=unit, dynamic_ncols=True, smoothing=0.1,
-                leave=leave, file=sys.stderr)
+    try:  # a pseudo-terminal whose size was never set reports 0 x 0: tqdm would draw nothing
+        sized = os.get_terminal_size(sys.stderr.fileno()).columns > 0
+    except OSError:
+        sized = False
+    size = {} if sized else {"ncols": 80, "nrows": 24}
+    return tqdm(total=total, initial=initial, desc=desc, unit=unit, dynamic_ncols=sized, smoothing=0.1,
+                leave=leave, file=sys.stderr, **size)
 
 
 def track(items, desc: str, unit: str = "sample", *, enabled: bool = True):
@@ -112,3 +118,16 @@ def say(*args, **kw) -> None:
     """print() of a summary line (what was written where): nothing when quiet."""
     if not quiet():
         print(*args, **kw)
+
+
+def note(text: str) -> None:
+    """A detail line (e.g. one per finished shard), on stderr, only with -v/--verbose; above a
+    live terminal bar, not through it."""
+    if not verbose():
+        return
+    if sys.stderr.isatty():
+        from tqdm import tqdm
+
+        tqdm.write(text, file=sys.stderr)
+    else:
+        print(text, file=sys.stderr, flush=True)

@@ -280,8 +280,13 @@ def recipe_from_text(text: str, path_for_messages: str | os.PathLike, base_dir: 
                                sha256=sha256_bytes(text.encode("utf-8")))
 
 
+SHIPPED_PREFIX = "shipped:"  # Recipe.path of a recipe loaded by name: "shipped:demo", the same in every install
+
+
 def load_recipe(path: str | os.PathLike) -> Recipe:
     """Read and validate a recipe file, or the shipped recipe of that name ("demo"; see
-    dofsynth.shipped and docs/recipes.md). `Recipe.sha256` is of its bytes."""
+    dofsynth.shipped and docs/recipes.md). `Recipe.sha256` is of its bytes. A recipe loaded
+    by name keeps the path "shipped:NAME" (what manifests record: never an install's folder)."""
     p = recipe_path(path)
-    return recipe_from_text(read_text(p, "recipe file"), str(p), p.resolve().parent)
+    recipe = recipe_from_text(read_text(p, "recipe file"), str(p), p.resolve().parent)
+    return dataclasses.replace(recipe, path=SHIPPED_PREFIX + p.stem) if p != Path(path) else recipe

@@ -18,6 +18,7 @@ import json
 import math
 import re
 from dataclasses import dataclass
+from importlib import resources
 from typing import Any, Callable
 
 import numpy as np
@@ -160,6 +161,14 @@ def members_markdown() -> str:
     return "\n".join(rows) + "\n"
 
 
+RECORD_SCHEMA_FILE = "record.schema.json"  # the JSON Schema of the record, shipped in the package
+
+
+def record_schema() -> dict:
+    """The JSON Schema (draft 2020-12) of the sample record (dofsynth/record.schema.json)."""
+    return json.loads(resources.files("dofsynth").joinpath(RECORD_SCHEMA_FILE).read_text(encoding="utf-8"))
+
+
 CONVENTIONS = {
     "disparity": "normalized disparity in [0, 1]: 1 = nearest, 0 = infinity",
     "coc": "signed circle-of-confusion radius in px = max_coc * (disparity - focus), > 0 in front of focus",
@@ -173,7 +182,8 @@ def format_description(method: str = DEFAULT_METHOD, options: tuple[str, ...] | 
     """What the manifest says about the samples of a set made with render `method` and the
     `render.members` `options`: the members they hold, conventions, record schema, renderer."""
     return {"members": [m.to_dict() for m in held_members(options)], "conventions": CONVENTIONS,
-            "record_schema_version": SCHEMA_VERSION, "renderer": METHODS[method].renderer_id}
+            "record_schema_version": SCHEMA_VERSION, "record_schema": RECORD_SCHEMA_FILE,
+            "renderer": METHODS[method].renderer_id}
 
 
 def exr_handler(key: str, data: bytes):

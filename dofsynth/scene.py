@@ -50,7 +50,7 @@ class BackgroundParams:
     mode: str                       # "flat" | "ramp"
     b0: float
     b1: float
-    direction: str | None           # "horizontal" | "vertical" | None (flat)
+    direction: str | None           # "horizontal" | "vertical" | None (flat; "none" in the record)
     crop: tuple[int, int, int, int]  # (x, y, w, h) in source pixels, before the flip
     flip: bool                      # horizontal flip after cropping
 
@@ -94,12 +94,13 @@ class Scene:
             "key": self.key, "split": self.split, "index": self.index, "seed": list(self.seed),
             "size": list(self.size),
             "assets": {k: asdict(self.assets[k]) for k in ("background", "front", "middle")},
-            "background": {**asdict(self.background), "crop": list(self.background.crop)},
+            "background": {**asdict(self.background), "crop": list(self.background.crop),
+                           "direction": self.background.direction or "none"},
             "front": _object_dict(self.front), "middle": _object_dict(self.middle),
             "targets": [t.to_dict() for t in self.targets],
             "aperture": self.aperture.to_dict(),
             "options": {**self.options.look.to_dict(), "members": list(self.options.members)},
-            "excluded": list(self.excluded),
+            "excluded": "\n".join(self.excluded),
         }
 
     @classmethod
@@ -109,22 +110,37 @@ class Scene:
             key=d["key"], split=d["split"], index=int(d["index"]), seed=tuple(int(s) for s in d["seed"]),
             size=(int(d["size"][0]), int(d["size"][1])),
             assets={k: AssetRef(**d["assets"][k]) for k in ("background", "front", "middle")},
-            background=BackgroundParams(**{**d["background"], "crop": tuple(int(v) for v in d["background"]["crop"])}),
+            background=BackgroundParams(**{**d["background"], "crop": tuple(int(v) for v in d["background"]["crop"]),
+                                           "direction": _direction(d["background"].get("direction"))}),
             front=_object(d["front"]), middle=_object(d["middle"]),
             targets=tuple(Target(**t) for t in d["targets"]),
             aperture=aperture_from_dict(d["aperture"]),
             options=Options(look=Look.from_dict(d["options"]), members=tuple(d["options"].get("members", ()))),
-            excluded=tuple(d.get("excluded", ())),
+            excluded=_split(d.get("excluded", ()), "\n"),
         )
+
+
+# Lists of names are stored as one string (schema 4): a field's JSON type must not depend on the
+# sample, and an empty list has none (Hugging Face datasets infers `null` from the first samples
+# and then cannot read a later non-empty one). Sides are joined by ",", asset ids by newlines.
+def _direction(value) -> str | None:
+    """A ramp's direction; None for a flat background ("none" in schema >= 4, null before)."""
+    return None if value in (None, "none") else value
+
+
+def _split(value, sep: str) -> tuple[str, ...]:
+    """Names of a record field: a joined string (schema >= 4) or a list (older records)."""
+    return tuple(x for x in value.split(sep) if x) if isinstance(value, str) else tuple(value)
 
 
 def _object_dict(o: ObjectParams) -> dict[str, Any]:
     d = asdict(o)
-    return {**d, "anchored": list(o.anchored), "rejected": list(o.rejected)}
+    return {**d, "anchored": ",".join(o.anchored), "rejected": "\n".join(o.rejected)}
 
 
 def _object(d: dict[str, Any]) -> ObjectParams:
-    return ObjectParams(**{**d, "anchored": tuple(d.get("anchored", ())), "rejected": tuple(d.get("rejected", ()))})
+    return ObjectParams(**{**d, "anchored": _split(d.get("anchored", ()), ","),
+                           "rejected": _split(d.get("rejected", ()), "\n")})
 
 
 def _ref(asset: Asset, recipe: Recipe, library: AssetLibrary) -> AssetRef:

@@ -76,3 +76,76 @@ def test_quiet_silences_the_summary_lines(tmp_path, capsys):
     assert capsys.readouterr().out == "" and (tmp_path / "smoke.toml").is_file()
     assert main(["recipes", "copy", "demo", str(tmp_path)]) == 0
     assert "copied demo.toml" in capsys.readouterr().out
+
+
+def test_quiet_and_verbose_go_before_or_after_the_command_and_mean_the_same(smoke_set, capsys):
+    assert main(["-q", "verify", str(smoke_set)]) == 0
+    assert capsys.readouterr().out == ""                   # -q: problems only (none here)
+    assert main(["verify", str(smoke_set), "-v"]) == 0
+    cap = capsys.readouterr()
+    shards = [ln for ln in cap.err.splitlines() if ln.strip().endswith("problems") and ".tar:" in ln]
+    assert len(shards) == 4 and "OK" in cap.out         # -v: a line per shard
+    assert main(["-v", "stats", str(smoke_set), "--out", str(smoke_set.parent / "s.png")]) == 0
+    cap = capsys.readouterr()
+    assert "train: 6 samples read" in cap.err and "train: 6 samples" in cap.out
+    assert main(["stats", str(smoke_set), "-q", "--out", str(smoke_set.parent / "s.png")]) == 0
+    assert capsys.readouterr().out == ""                 # stats -q prints nothing
+    assert main(["-q", "verify", str(smoke_set), "-v"]) == 2
+    assert "give one of them" in capsys.readouterr().err
+    assert main(["docs", "list"]) == 0 and "FORMAT" in capsys.readouterr().out
+
+
+def test_progress_has_a_total_and_draws_on_an_unsized_terminal(smoke_set):
+    """verify's bar counts to the manifest's samples; on a pseudo-terminal whose size was never
+    set (0 x 0, as a CI runner's) the bar still draws."""
+    import os
+    import pty
+    import subprocess
+    import sys
+
+    master, slave = pty.openpty()   # a new pty: 0 x 0 until someone sets its size
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
+    proc = subprocess.Popen([sys.executable, "-m", "dofsynth", "verify", str(smoke_set)], stdin=slave, stdout=slave,
+                            stderr=slave, env=env, close_fds=True)
+    os.close(slave)
+    out = b""
+    while True:
+        try:
+            chunk = os.read(master, 4096)
+        except OSError:
+            break
+        if not chunk:
+            break
+        out += chunk
+    assert proc.wait(timeout=600) == 0, out
+    text = out.decode(errors="replace")
+    assert "verify:" in text and "/8 [" in text, text[-500:]   # a tqdm frame, with the total
+
+
+def test_outputs_beside_a_read_only_set_are_refused_before_the_work(smoke_set, tmp_path, capsys):
+    """On a read-only mount (what root cannot write either) stats and sheet say so at once,
+    naming the path and how to write elsewhere."""
+    import shutil
+    import subprocess
+
+    ro = tmp_path / "ro"
+    shutil.copytree(smoke_set, ro)
+    bound = subprocess.run(["mount", "--bind", str(ro), str(ro)], capture_output=True)
+    if bound.returncode != 0:
+        pytest.skip(f"cannot bind-mount here: {bound.stderr.decode().strip() or 'not permitted'}")
+    try:
+        subprocess.run(["mount", "-o", "remount,ro,bind", str(ro)], check=True, capture_output=True)
+        for cmd in (["stats", str(ro)], ["sheet", str(ro)]):
+            assert main(cmd) == 2
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and "read-only" in err[0] and str(ro) in err[0], err
+        assert main(["stats", str(ro), "--out", str(tmp_path / "stats.png")]) == 0
+        assert (tmp_path / "stats.png").is_file()
+    finally:
+        subprocess.run(["umount", "-l", str(ro)], capture_output=True)
+
+
+def test_an_existing_destination_is_bad_input_everywhere(tmp_path, capsys):
+    assert main(["recipes", "copy", "smoke", str(tmp_path)]) == 0
+    assert main(["recipes", "copy", "smoke", str(tmp_path)]) == 2
+    assert "exists" in capsys.readouterr().err

@@ -149,3 +149,15 @@ def test_the_docs_key_table_is_the_recipe_fields():
         else:
             doc = tomllib.loads(f"v = {cell}")["v"]
             assert doc == (list(default) if isinstance(default, tuple) else default), (k, cell, default)
+
+
+def test_a_training_config_with_any_string_round_trips_through_its_toml():
+    """A path may hold a quote, a backslash or a newline: the written config.toml stays valid."""
+    import dataclasses
+    import tomllib
+
+    from dofsynth.train.config import from_dict, load, to_toml
+
+    cfg = load("train-tiny")
+    odd = dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, mattes='we"ird\\folder\nname', rgbd="tab\there"))
+    assert from_dict(tomllib.loads(to_toml(odd)), "config.toml") == odd

@@ -45,10 +45,11 @@ def test_lens_targets_are_recorded_and_their_max_coc_follows_the_lens():
     scene = sample_scene(recipe, build_library(recipe), "train", 0)
     for t in scene.to_dict()["targets"]:
         lens = t["lens"]
-        assert 35 <= lens["focal_length_mm"] <= 50 and 2 <= lens["f_number"] <= 4 and lens["far_m"] is None
+        assert 35 <= lens["focal_length_mm"] <= 50 and 2 <= lens["f_number"] <= 4 and lens["far_m"] == 0.0  # infinity
         lens_obj = ThinLens(lens["focal_length_mm"], lens["f_number"], lens["sensor_width_mm"], lens["near_m"])
-        assert lens_obj.disparity(lens["focus_distance_m"]) == pytest.approx(t["focus"])
-        assert lens_obj.max_coc(lens["focus_distance_m"], recipe.frame[1]) == pytest.approx(t["max_coc"])
+        distance = lens["focus_distance_m"] or math.inf   # 0 = infinity, as in the recipe
+        assert lens_obj.disparity(distance) == pytest.approx(t["focus"])
+        assert lens_obj.max_coc(distance, recipe.frame[1]) == pytest.approx(t["max_coc"])
     assert Scene.from_dict(scene.to_dict()) == scene
     plain = sample_scene(_recipe("enabled = false\n"), build_library(recipe), "train", 0)
     assert all("lens" not in t for t in plain.to_dict()["targets"])

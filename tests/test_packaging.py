@@ -34,7 +34,7 @@ def test_shipped_recipes_and_docs_by_name(tmp_path, capsys):
     assert main(["recipes", "copy", "demo", str(tmp_path / "mine")]) == 0
     copied = tmp_path / "mine" / "demo.toml"
     assert copied.read_bytes() == (ROOT / "recipes" / "demo.toml").read_bytes()
-    assert main(["recipes", "copy", "demo", str(tmp_path / "mine")]) == 1       # never overwritten silently
+    assert main(["recipes", "copy", "demo", str(tmp_path / "mine")]) == 2       # never overwritten silently
     assert "exists" in capsys.readouterr().err
     assert main(["recipes", "show", "nope"]) == 2
     assert "shipped: deeplens-18k, demo" in capsys.readouterr().err

@@ -12,7 +12,7 @@ from dofsynth.compose import scene_layers
 from dofsynth.config import ConfigError
 from dofsynth.recipe import load_recipe
 from dofsynth.assets.placement import placed_size
-from dofsynth.scene import sample_scene
+from dofsynth.scene import Scene, sample_scene
 
 from conftest import noise_rgb, write_png
 
@@ -114,7 +114,8 @@ def test_an_asset_no_placement_can_fit_is_skipped_by_name_or_redrawn_and_recorde
         s = sample_scene(recipe, forced, "train", i)
         assert "fg/band" not in (s.assets["front"].id, s.assets["middle"].id)
         rejected += "fg/band" in (*s.front.rejected, *s.middle.rejected)
-        assert s.to_dict()["front"]["rejected"] == list(s.front.rejected)
+        assert s.to_dict()["front"]["rejected"] == "\n".join(s.front.rejected)
+        assert Scene.from_dict(s.to_dict()).front.rejected == s.front.rejected
     assert rejected > 20
 
 

@@ -187,3 +187,39 @@ def test_render_subaperture_with_cat_eye_on_the_command_line(tmp_path):
     a, b = read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "b.exr")
     assert a.shape == (48, 64, 3) and not np.allclose(a, b, atol=1e-4)   # the corner disc is clipped
     assert main(args + ["--cat-eye", "0.6", "--out", str(tmp_path / "c.exr")]) == 2   # layered: refused by name
+
+
+def test_a_depth_map_of_another_size_is_resampled_and_a_collapsed_one_is_warned_about(tmp_path, capsys):
+    import cv2
+
+    h, w = 48, 64
+    g = np.random.default_rng(3)
+    write_png(tmp_path / "p.png", g.random((h, w, 3)).astype(np.float32))
+    ramp = np.tile(np.linspace(0.0, 1.0, w // 2, dtype=np.float32), (h // 2, 1))
+    write_exr(tmp_path / "half.exr", ramp)
+    full = cv2.resize(ramp, (w, h), interpolation=cv2.INTER_LINEAR)
+    write_exr(tmp_path / "full.exr", full)
+    common = ["--focus", "0.2", "--max-coc", "3", "--out"]
+    assert main(["render", str(tmp_path / "p.png"), "--depth", str(tmp_path / "half.exr"), *common,
+                 str(tmp_path / "a.exr")]) == 0
+    err = capsys.readouterr().err
+    assert "32x24, IMAGE is 64x48: depth resampled (bilinear)" in err
+    assert main(["render", str(tmp_path / "p.png"), "--depth", str(tmp_path / "full.exr"), *common,
+                 str(tmp_path / "b.exr")]) == 0
+    assert np.array_equal(read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "b.exr"))
+    # metric depth with a near pixel at almost 0 m: every other pixel normalises below 0.05
+    metric = np.full((h, w), 5.0, np.float32) + g.random((h, w)).astype(np.float32)
+    metric[0, 0] = 1e-3
+    write_exr(tmp_path / "metric.exr", metric)
+    capsys.readouterr()
+    assert main(["render", str(tmp_path / "p.png"), "--depth", str(tmp_path / "metric.exr"), "--depth-kind", "depth",
+                 *common, str(tmp_path / "c.png")]) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "metric.exr" in err and "below 0.05" in err
+    capsys.readouterr()
+    sane = metric.copy()
+    sane[0, 0] = 2.0
+    write_exr(tmp_path / "sane.exr", sane)
+    assert main(["render", str(tmp_path / "p.png"), "--depth", str(tmp_path / "sane.exr"), "--depth-kind", "depth",
+                 *common, str(tmp_path / "d.png")]) == 0
+    assert "warning" not in capsys.readouterr().err

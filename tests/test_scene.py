@@ -47,13 +47,23 @@ def test_dict_round_trip_is_exact_through_json(many):
         del ref["colour"]
     back = Scene.from_dict(old)
     assert back.front.anchored == () and back.front.visible == 1.0 and back.assets["front"].colour == "file"
+    # a schema-3 record (lists of names, a flat background's direction null) reads the same
+    for s in many:
+        v3 = json.loads(json.dumps(s.to_dict()))
+        for role in ("front", "middle"):
+            v3[role]["anchored"] = list(s.to_dict()[role]["anchored"].split(",")) if v3[role]["anchored"] else []
+            v3[role]["rejected"] = list(getattr(s, role).rejected)
+        v3["excluded"] = list(s.excluded)
+        if v3["background"]["direction"] == "none":
+            v3["background"]["direction"] = None
+        assert Scene.from_dict(v3) == s
 
 
 def test_record_fields_match_the_format(many):
     d = many[0].to_dict()
     assert set(d) == {"key", "split", "index", "seed", "size", "assets", "background", "front", "middle",
                       "targets", "aperture", "options", "excluded"}
-    assert d["excluded"] == []
+    assert d["excluded"] == "" and isinstance(d["front"]["anchored"], str) and isinstance(d["front"]["rejected"], str)
     assert set(d["assets"]) == {"background", "front", "middle"}
     assert set(d["assets"]["front"]) == {"id", "path", "sha256", "colour"}
     assert d["assets"]["front"]["colour"] == "file"  # built-in cutouts: their own colour

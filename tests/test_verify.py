@@ -249,10 +249,15 @@ def test_schema_errors_are_named(smoke_set):
     bad["size"] = [64]
     bad["background"]["mode"] = "sky"
     errs = check_record_schema(bad)
-    assert "missing key targets[1].max_coc" in errs
-    assert any(e.startswith("front.disparity must be a number in [0, 1]") for e in errs)
-    assert any(e.startswith("size must be") for e in errs)
-    assert any(e.startswith("background.mode must be") for e in errs)
+    assert "targets[1]: 'max_coc' is a required property" in errs
+    assert "front.disparity: 1.5 is greater than the maximum of 1" in errs
+    assert "size: [64] is too short" in errs
+    assert any(e.startswith("background.mode: 'sky' is not one of") for e in errs)
+    typed = json.loads(json.dumps(rec))   # schema 4: one JSON type per field, whatever the sample
+    typed["front"]["anchored"] = ["bottom"]
+    typed["excluded"] = None
+    errs = check_record_schema(typed)
+    assert "front.anchored: ['bottom'] is not of type 'string'" in errs and "excluded: None is not of type 'string'" in errs
     bad2 = json.loads(json.dumps(rec))
     bad2["middle"]["disparity"] = float("nan")
     assert any(e.startswith("middle.disparity") for e in check_record_schema(bad2))
@@ -262,7 +267,7 @@ def test_schema_problem_in_a_shard_is_reported(copy):
     split, rec, _ = _records(copy)[1]
     name = rewrite_record(copy, split, rec["key"], lambda r: r.pop("aperture"))
     report = verify_dataset(copy)
-    assert [str(p) for p in report.problems] == [f"{name}: {rec['key']}: missing key aperture"]
+    assert [str(p) for p in report.problems] == [f"{name}: {rec['key']}: record: 'aperture' is a required property"]
 
 
 def test_missing_manifest_and_folder(tmp_path, capsys):

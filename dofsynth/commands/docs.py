@@ -5,15 +5,16 @@ from __future__ import annotations
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "docs", help="list or print the shipped documentation (FORMAT, recipes, training, ...)",
-        description="Without NAME, list the documents; with it, print one (e.g. `dofsynth docs FORMAT`).")
-    p.add_argument("name", metavar="NAME", nargs="?", default=None, help="a document name, e.g. FORMAT")
+        description="Without NAME (or with `list`), list the documents; with it, print one (e.g. "
+                    "`dofsynth docs FORMAT`).")
+    p.add_argument("name", metavar="NAME", nargs="?", default=None, help="a document name, e.g. FORMAT; or list")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from dofsynth.shipped import find_shipped, shipped
 
-    if args.name is None:
+    if args.name in (None, "list"):
         for name, path in shipped("docs").items():
             title = next((ln.lstrip("# ").strip() for ln in path.read_text(encoding="utf-8").splitlines()
                           if ln.startswith("#")), "")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,10 +22,13 @@ bleeds over a sharp foreground edge and a blurred foreground has nothing behind 
 (see `dofsynth docs rendering` for the known limits; layered scenes avoid them).
 
 DEPTH is normalized disparity (1 = nearest, 0 = infinity): a float32 EXR (channel disparity, Z
-or its only channel) or an 8/16-bit grey PNG/TIFF scaled to [0, 1], or a .npy array; it must
-have the photo's size. A depth map from any monocular depth network run elsewhere works too:
---depth-kind disparity (relative inverse depth, any scale) or depth (any unit) normalises it as
-the DeepLens paper does (inverted for depth, then min-max to [0, 1]).
+or its only channel) or an 8/16-bit grey PNG/TIFF scaled to [0, 1], or a .npy array. A map of
+another size with the photo's aspect ratio is resampled to it (a note says so). A depth map
+from any monocular depth network run elsewhere works too: --depth-kind disparity (relative
+inverse depth, any scale: MiDaS, DPT, Depth Anything) or depth (any unit: ZoeDepth, Metric3D,
+Depth Pro, Marigold) normalises it as the DeepLens paper does (inverted for depth, then
+min-max to [0, 1]); a map whose range a few outliers set (a metric depth of 0) gets a warning.
+`dofsynth docs rendering` has the table of common models.
 
 --model RUN (repeatable) renders with trained networks: a run of the DoF networks replaces the
 classical renderer; a run of the depth network (`[train] task = "depth"`) predicts DEPTH from
@@ -119,10 +123,10 @@ def _read_inputs(args, depth_run):
         from dofsynth.train.infer import predict_depth
 
         return rgb, predict_depth(depth_run, rgb)
-    disparity, _ = normalize_disparity(read_depth(args.depth), args.depth_kind)
-    if disparity.shape != rgb.shape[:2]:
-        raise ValueError(f"--depth {args.depth} is {disparity.shape[1]}x{disparity.shape[0]} but IMAGE "
-                         f"{args.image} is {rgb.shape[1]}x{rgb.shape[0]}: they must have the same size")
+    disparity, known = normalize_disparity(read_depth(args.depth), args.depth_kind)
+    disparity = _fit_depth(disparity, rgb.shape[:2], args)
+    if args.depth_kind != "normalized" and known.any():
+        _warn_if_collapsed(disparity[_fit_mask(known, rgb.shape[:2])], args)
     if not np.all(np.isfinite(disparity)) or disparity.min() < 0 or disparity.max() > 1:
         raise ValueError(f"--depth {args.depth}: disparity must be finite and in [0, 1], "
                          f"got [{np.nanmin(disparity)}, {np.nanmax(disparity)}] (another network's raw "
@@ -130,6 +134,47 @@ def _read_inputs(args, depth_run):
     if not np.all(np.isfinite(rgb)) or rgb.min() < 0:
         raise ValueError(f"IMAGE {args.image}: colour must be finite and >= 0")
     return rgb, disparity
+
+
+COLLAPSE = 0.98  # share of a normalised map's pixels within 0.05 of one end that says it collapsed
+
+
+def _fit_depth(disparity: np.ndarray, shape: tuple[int, int], args) -> np.ndarray:
+    """A depth map of another size than the photo, resampled to it (saying so); one of another
+    aspect ratio is refused (it is not this photo's map)."""
+    import cv2
+
+    (h, w), (dh, dw) = shape, disparity.shape
+    if (dh, dw) == (h, w):
+        return disparity
+    if abs(dw / dh - w / h) > 0.01 * (w / h):
+        raise ValueError(f"--depth {args.depth} is {dw}x{dh} but IMAGE {args.image} is {w}x{h}: another aspect "
+                         "ratio, so not this photo's depth map")
+    interp = cv2.INTER_AREA if dw > w else cv2.INTER_LINEAR
+    print(f"dofsynth render: note: --depth {args.depth} is {dw}x{dh}, IMAGE is {w}x{h}: depth resampled "
+          f"({'area' if dw > w else 'bilinear'})", file=sys.stderr)
+    return cv2.resize(np.ascontiguousarray(disparity, np.float32), (w, h), interpolation=interp)
+
+
+def _fit_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    if mask.shape == shape:
+        return mask
+    return cv2.resize(mask.astype(np.uint8), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST) > 0
+
+
+def _warn_if_collapsed(disp: np.ndarray, args) -> None:
+    """A warning when min-max normalisation squeezed almost every pixel to one end: a few
+    extreme values (a metric depth of 0 near the camera, a far outlier) dominate the range, and
+    the render would be nearly uniform."""
+    low, high = float(np.mean(disp < 0.05)), float(np.mean(disp > 0.95))
+    if max(low, high) >= COLLAPSE:
+        end = "below 0.05" if low >= high else "above 0.95"
+        print(f"dofsynth render: warning: --depth {args.depth} (--depth-kind {args.depth_kind}) normalises to "
+              f"{max(low, high):.1%} of its pixels {end}: a few extreme values set its range, so the blur will be "
+              "nearly uniform; clip the map's outliers (a depth of 0, a far sky value) or check --depth-kind",
+              file=sys.stderr)
 
 
 def _runs(models: list[str]) -> dict[str, str]:

@@ -1,6 +1,8 @@
 """`dofsynth sheet OUT`: a contact sheet (PNG) and optionally a static HTML page of a data set."""
 from __future__ import annotations
 
+from pathlib import Path
+
 from dofsynth.commands import int_at_least
 from dofsynth.progress import say
 
@@ -38,18 +40,29 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from dofsynth.files import check_writable
+    from dofsynth.progress import bar, note
+    from dofsynth.qa.dataset import load, manifest_splits
     from dofsynth.qa.html import write_html
-    from dofsynth.qa.sheets import write_sheet
+    from dofsynth.qa.sheets import sheet_path, write_sheet
 
     if not 16 <= args.thumb <= 2048:
         raise ValueError(f"--thumb must be between 16 and 2048 pixels, got {args.thumb}")
-    from dofsynth.qa.dataset import load, manifest_splits
-
-    splits = manifest_splits(load(args.out)) if args.split == "all" else [args.split]
+    manifest = load(args.out)
+    splits = manifest_splits(manifest) if args.split == "all" else [args.split]
     if len(splits) > 1 and args.path:
         raise ValueError("--png names one file: give it with one --split, not all")
-    for split in splits:
-        say(write_sheet(args.out, split=split, n=args.n, seed=args.seed, path=args.path, thumb=args.thumb))
+    for split in splits:  # every output checked before the work (a read-only set: --png elsewhere)
+        check_writable(sheet_path(args.out, split, args.path), "contact sheet")
+    if args.html:
+        check_writable(Path(args.html) / "index.html", "QA page")
+    total = sum(min(args.n, manifest["splits"][s]["samples"]) for s in splits if s in manifest["splits"])
+    with bar(total, "sheet", leave=False) as progress:
+        for split in splits:
+            path = write_sheet(args.out, split=split, n=args.n, seed=args.seed, path=args.path, thumb=args.thumb,
+                               progress=progress.update)
+            note(f"  {split}: {path}")
+            say(path)
     if args.html:
         page = write_html(args.out, args.html, split=args.split, n=args.n, seed=args.seed,
                           sweep=args.sweep, sweep_steps=args.sweep_steps, thumb=args.thumb)

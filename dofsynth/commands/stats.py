@@ -26,17 +26,23 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from pathlib import Path
+
+    from dofsynth.files import check_writable
+    from dofsynth.progress import bar as progress_bar
+    from dofsynth.qa.dataset import sample_count
     from dofsynth.qa.stats import write_stats
 
-    from dofsynth.progress import bar as progress_bar
-
-    with progress_bar(None, "stats", leave=False) as bar:
+    check_writable(args.path or Path(args.out) / "stats.png", "stats chart")
+    if args.json:
+        check_writable(args.json, "stats JSON")
+    with progress_bar(sample_count(args.out, args.split), "stats", leave=False) as bar:
         png, js, stats = write_stats(args.out, path=args.path, json_path=args.json, splits=args.split,
                                      progress=bar.update)
     for split, st in stats["splits"].items():
         h = st["histograms"]
-        print(f"{split}: {st['samples']} samples, {h['focus']['total']} targets, "
-              f"{h['coc']['total']} target pixels; backgrounds {st['counts']['background_mode']}")
+        say(f"{split}: {st['samples']} samples, {h['focus']['total']} targets, "
+            f"{h['coc']['total']} target pixels; backgrounds {st['counts']['background_mode']}")
     say(png)
     if js:
         say(js)

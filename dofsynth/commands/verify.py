@@ -32,14 +32,16 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from dofsynth.progress import bar as progress_bar
+    from dofsynth.progress import quiet
+    from dofsynth.qa.dataset import sample_count
     from dofsynth.qa.verify import verify_dataset
 
-    from dofsynth.progress import bar as progress_bar
-
-    with progress_bar(None, "verify", leave=False) as bar:
+    with progress_bar(sample_count(args.out), "verify", leave=False) as bar:
         report = verify_dataset(args.out, deep=args.deep, deep_n=args.deep_n, seed=args.seed,
                                 recipe_path=args.recipe, progress=bar.update)
     for line in report.lines():
-        print(line)
+        if not quiet() or line.startswith("FAIL"):  # -q: the problems alone (and the exit status)
+            print(line)
     sys.stdout.flush()
     return 0 if report.ok else 1

@@ -7,6 +7,7 @@ from pathlib import Path
 from dofsynth.files import atomic_write_bytes, canonical_json, is_temp_name
 from dofsynth.generate.folder import remove_shard_temps
 from dofsynth.generate.locks import LOCK_NAME, OutputLock
+from dofsynth.manifest.card import write_card
 from dofsynth.manifest.names import MANIFEST_NAME, PROGRESS_PART_RE
 from dofsynth.manifest.parts import merge_parts
 
@@ -29,6 +30,8 @@ def merge(parts: list[Path], out: Path, keep_parts: bool = False) -> tuple[dict,
                     raise ValueError(f"{f}: {f.stat().st_size} bytes, the parts say {s['bytes']} (rerun its "
                                      "range with --resume)")
         data = canonical_json(manifest, indent=1)
+        if out.name == MANIFEST_NAME:  # the data set's own manifest: its card first, as a single run does
+            write_card(folder, manifest)
         atomic_write_bytes(out, data)
         if not keep_parts:
             for p in parts:

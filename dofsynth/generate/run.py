@@ -29,11 +29,13 @@ from dofsynth.generate.plan import ShardTask, plan_shards, plan_split, split_siz
 from dofsynth.generate.locks import OutputLock, RangeLock
 from dofsynth.generate.worker import library_for, peak_rss_mb, portable, shard_usage
 from dofsynth.manifest import build_manifest, with_bad_assets, write_manifest
+from dofsynth.manifest.card import write_card
 from dofsynth.manifest.names import MANIFEST_NAME, PROGRESS_NAME, part_name, progress_part_name
 from dofsynth.manifest.parts import build_part, load_part, write_part
 from dofsynth.manifest.progress import append_progress, read_progress, remove_progress, start_progress
 from dofsynth.manifest.usage import Usage
 from dofsynth.progress import bar as progress_bar
+from dofsynth.progress import note
 from dofsynth.rng import SPLITS
 from dofsynth.shards import ShardInfo
 
@@ -127,6 +129,7 @@ def _make(recipe, out: Path, executor, tasks: list[ShardTask], todo: list[ShardT
                 on_samples(d.task.path, d.task.samples)
                 peak, busy = max(peak, d.peak_rss_mb), busy + d.seconds
                 record(d.info)
+                note(f"  {d.info.path}: {d.info.samples} samples, {d.info.bytes} bytes, {d.seconds:.1f} s")
     finally:
         bar.close()
     return peak, busy
@@ -178,6 +181,7 @@ class _Whole:
         shards = {s: [i for i in done if i.split == s] for s in self.plan_splits}
         manifest = build_manifest(self.recipe, shards, limits=self.limits,
                                   extra={"skipped_assets": skipped, "assets": self.assets})
+        write_card(self.out, manifest)   # the card first: the manifest is the set's "finished" mark
         write_manifest(self.out, manifest)
         return manifest
 

@@ -25,8 +25,9 @@ from dofsynth import __version__
 from dofsynth.files import atomic_write_bytes, canonical_json, read_json
 from dofsynth.manifest.names import MANIFEST_NAME
 from dofsynth.manifest.usage import Usage
-from dofsynth.recipe import recipe_from_text
+from dofsynth.recipe import SHIPPED_PREFIX, recipe_from_text
 from dofsynth.record import format_description
+from dofsynth.shipped import shipped_dir
 from dofsynth.shards import ShardInfo
 
 MANIFEST_SCHEMA_VERSION = 3  # 2: `format` and `libraries`; 3: `format` names the set's renderer and only its members
@@ -170,7 +171,10 @@ def recipe_from_manifest(manifest: dict, out_dir: str | os.PathLike):
     if not isinstance(rec, dict) or not isinstance(rec.get("text"), str):
         raise ValueError(f"{Path(out_dir) / MANIFEST_NAME}: holds no recipe text")
     path = rec.get("path")
-    base = Path(path).parent if path and Path(path).parent.is_dir() else Path(out_dir)
+    if path and path.startswith(SHIPPED_PREFIX):  # a shipped recipe, by name: this install's copy's folder
+        base = shipped_dir("recipes")
+    else:
+        base = Path(path).parent if path and Path(path).parent.is_dir() else Path(out_dir)
     return recipe_from_text(rec["text"], path or f"{Path(out_dir) / MANIFEST_NAME} (recipe)", base)
 
 

@@ -67,8 +67,9 @@ class ThinLens:
         return self.disparity(focus_distance_m), self.max_coc(focus_distance_m, width_px)
 
     def to_dict(self, focus_distance_m: float) -> dict:
-        """The record's `lens` block of a target."""
+        """The record's `lens` block of a target: numbers only (one JSON type in every record),
+        an infinite distance written as 0, as the recipe's `far_m = 0` means infinity."""
         return {"focal_length_mm": self.focal_length_mm, "f_number": self.f_number,
                 "sensor_width_mm": self.sensor_width_mm, "near_m": self.near_m,
-                "far_m": None if math.isinf(self.far_m) else self.far_m,
-                "focus_distance_m": None if math.isinf(focus_distance_m) else focus_distance_m}
+                "far_m": 0.0 if math.isinf(self.far_m) else self.far_m,
+                "focus_distance_m": 0.0 if math.isinf(focus_distance_m) else focus_distance_m}

@@ -39,6 +39,16 @@ def manifest_shards(manifest: dict, split: str) -> list[ShardInfo]:
                   key=lambda s: s.first_index)
 
 
+def sample_count(out_dir: str | Path, splits=None) -> int | None:
+    """How many samples the manifest lists (in `splits`, default all): a progress total; None
+    when the manifest cannot be read (the command itself then says why)."""
+    try:
+        manifest = load(out_dir)
+        return sum(int(manifest["splits"][s]["samples"]) for s in (splits or manifest_splits(manifest)))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def split_keys(manifest: dict, split: str) -> list[str]:
     """Every sample key of `split` in index order, from the manifest alone."""
     return [k for sh in manifest_shards(manifest, split) for k in sh.keys()]
@@ -69,7 +79,13 @@ def read_members_many(out_dir: str | Path, split: str, keys) -> dict[str, dict[s
     return {k: found[k] for k in keys}
 
 
-def read_samples(out_dir: str | Path, split: str, keys: list[str]) -> list[dict]:
-    """Decode the samples with the given keys (returned in the order given)."""
+def read_samples(out_dir: str | Path, split: str, keys: list[str], progress=None) -> list[dict]:
+    """Decode the samples with the given keys (returned in the order given); `progress(1)` is
+    called per sample decoded."""
     raw = read_members_many(out_dir, split, keys)
-    return [decode_sample(raw[k], k) for k in keys]
+    out = []
+    for k in keys:
+        out.append(decode_sample(raw.pop(k), k))
+        if progress:
+            progress(1)
+    return out

@@ -1,5 +1,6 @@
 """The sample record's schema and the pixel checks of one decoded sample (docs/FORMAT.md):
-`check_record_schema(record)` and `check_pixels(sample)` return lists of problems.
+`check_record_schema(record)` (the shipped JSON Schema, validated with `jsonschema`) and
+`check_pixels(sample)` return lists of problems.
 
 The disparity map must agree with the record: opaque front/middle pixels carry that plane's
 disparity within DEPTH_TOL, bare background pixels the flat value or the recomputed ramp
@@ -8,110 +9,52 @@ within RAMP_TOL.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
+import jsonschema
 import numpy as np
 
-from dofsynth.assets.decode import SIDES
 from dofsynth.compose import COVER_THRESHOLD
 from dofsynth.optics.aperture import APERTURES
-from dofsynth.codecs import SCHEMA_VERSION
+from dofsynth.record import record_schema
 from dofsynth.render.planes import background_disparity
 
 DEPTH_TOL = 1e-6
 RAMP_TOL = 1e-5
-ROLES = ("background", "front", "middle")
 
 
-_NUM = (int, float)
+def _path(error) -> str:
+    parts = [f"[{p}]" if isinstance(p, int) else f".{p}" for p in error.absolute_path]
+    return "".join(parts).lstrip(".") or "record"
 
 
-def _is_num(v) -> bool:
-    return isinstance(v, _NUM) and not isinstance(v, bool) and math.isfinite(v)
+@lru_cache(maxsize=1)
+def _validator():
+    schema = record_schema()
+    return jsonschema.Draft202012Validator(schema)
 
 
-def _is_int(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _unit(v) -> bool:
-    return _is_num(v) and 0.0 <= v <= 1.0
+def _non_finite(obj, where: str = "") -> list[str]:
+    """Paths of NaN / inf numbers (Python's json reads them; JSON Schema's bounds let NaN by)."""
+    if isinstance(obj, dict):
+        return [p for k, v in obj.items() for p in _non_finite(v, f"{where}.{k}" if where else str(k))]
+    if isinstance(obj, list):
+        return [p for i, v in enumerate(obj) for p in _non_finite(v, f"{where}[{i}]")]
+    return [where] if isinstance(obj, float) and not math.isfinite(obj) else []
 
 
 def check_record_schema(rec) -> list[str]:
-    """Problems with a record's keys, types and value ranges (docs/FORMAT.md)."""
-    if not isinstance(rec, dict):
-        return ["record is not a JSON object"]
-    errs: list[str] = []
-
-    def want(obj, name, pred, what, prefix=""):
-        if not isinstance(obj, dict) or name not in obj:
-            errs.append(f"missing key {prefix}{name}")
-            return False
-        if not pred(obj[name]):
-            errs.append(f"{prefix}{name} must be {what}, got {obj[name]!r}")
-            return False
-        return True
-
-    want(rec, "schema_version", lambda v: v == SCHEMA_VERSION, str(SCHEMA_VERSION))
-    want(rec, "key", lambda v: isinstance(v, str) and "." not in v, "a string without dots")
-    want(rec, "split", lambda v: isinstance(v, str), "a string")
-    want(rec, "index", lambda v: _is_int(v) and v >= 0, "an integer >= 0")
-    want(rec, "seed", lambda v: isinstance(v, list) and v and all(_is_int(x) and x >= 0 for x in v),
-         "a list of integers >= 0")
-    want(rec, "size", lambda v: isinstance(v, list) and len(v) == 2 and all(_is_int(x) and x > 0 for x in v),
-         "[H, W] positive integers")
-    if want(rec, "assets", lambda v: isinstance(v, dict), "an object"):
-        for role in ROLES:
-            p = f"assets.{role}."
-            if want(rec["assets"], role, lambda v: isinstance(v, dict), "an object", "assets."):
-                a = rec["assets"][role]
-                want(a, "id", lambda v: isinstance(v, str) and v, "a non-empty string", p)
-                want(a, "sha256", lambda v: isinstance(v, str) and len(v) == 64, "a hex sha256", p)
-                want(a, "path", lambda v: isinstance(v, str), "a string", p)
-                want(a, "colour", lambda v: v == "file" or (isinstance(v, str) and v.startswith("estimated:")),
-                     "'file' or 'estimated:<estimator>'", p)
-    if want(rec, "background", lambda v: isinstance(v, dict), "an object"):
-        b, p = rec["background"], "background."
-        want(b, "mode", lambda v: v in ("flat", "ramp"), "'flat' or 'ramp'", p)
-        want(b, "b0", _unit, "a number in [0, 1]", p)
-        want(b, "b1", _unit, "a number in [0, 1]", p)
-        want(b, "direction", lambda v: v in ("horizontal", "vertical", None), "'horizontal', 'vertical' or null", p)
-        want(b, "crop", lambda v: isinstance(v, list) and len(v) == 4 and all(_is_num(x) for x in v),
-             "[x, y, w, h]", p)
-        want(b, "flip", lambda v: isinstance(v, bool), "a boolean", p)
-        if b.get("mode") == "ramp" and b.get("direction") is None:
-            errs.append("background.direction must be set for a ramp")
-    for role in ("front", "middle"):
-        if want(rec, role, lambda v: isinstance(v, dict), "an object"):
-            o, p = rec[role], f"{role}."
-            want(o, "disparity", _unit, "a number in [0, 1]", p)
-            want(o, "scale", lambda v: _is_num(v) and v > 0, "a number > 0", p)
-            want(o, "x", _is_num, "a number", p)
-            want(o, "y", _is_num, "a number", p)
-            want(o, "flip", lambda v: isinstance(v, bool), "a boolean", p)
-            want(o, "anchored", lambda v: isinstance(v, list) and set(v) <= set(SIDES) and len(set(v)) == len(v),
-                 "a list of distinct sides (top, bottom, left, right)", p)
-            want(o, "visible", _unit, "a number in [0, 1]", p)
-            want(o, "rejected", lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v),
-                 "a list of asset ids", p)
-    if want(rec, "targets", lambda v: isinstance(v, list) and len(v) > 0, "a non-empty list"):
-        for i, t in enumerate(rec["targets"]):
-            p = f"targets[{i}]."
-            if not isinstance(t, dict):
-                errs.append(f"targets[{i}] must be an object")
-                continue
-            want(t, "focus", _unit, "a number in [0, 1]", p)
-            want(t, "max_coc", lambda v: _is_num(v) and v >= 0, "a number >= 0", p)
-    if want(rec, "aperture", lambda v: isinstance(v, dict), "an object"):
-        ap = rec["aperture"]
-        if want(ap, "kind", lambda v: v in APERTURES, " or ".join(map(repr, APERTURES)), "aperture."):
-            if ap["kind"] == "polygon":
-                want(ap, "blades", lambda v: _is_int(v) and v >= 3, "an integer >= 3", "aperture.")
-                want(ap, "rotation", _is_num, "a number", "aperture.")
-    want(rec, "options", lambda v: isinstance(v, dict), "an object")
-    want(rec, "excluded", lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v), "a list of asset ids")
-    want(rec, "renderer", lambda v: isinstance(v, str), "a string")
-    want(rec, "dofsynth_version", lambda v: isinstance(v, str), "a string")
+    """Problems with a record against its JSON Schema (dofsynth/record.schema.json: keys, one
+    JSON type per field, value ranges), then what a schema cannot say: numbers are finite, a
+    ramp has a direction, the aperture is a registered kind."""
+    errs = [f"{_path(e)}: {e.message}" for e in sorted(_validator().iter_errors(rec), key=lambda e: list(e.absolute_path))]
+    errs += [f"{p}: must be a finite number" for p in _non_finite(rec)]
+    if errs or not isinstance(rec, dict):
+        return errs
+    if rec["background"]["mode"] == "ramp" and rec["background"]["direction"] == "none":
+        errs.append("background.direction must be horizontal or vertical for a ramp")
+    if rec["aperture"]["kind"] not in APERTURES:
+        errs.append(f"aperture.kind must be one of {', '.join(APERTURES)}, got {rec['aperture']['kind']!r}")
     return errs
 
 

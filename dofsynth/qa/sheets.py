@@ -196,17 +196,23 @@ def choose_keys(manifest: dict, split: str, n: int, seed: int) -> list[str]:
     return [keys[i] for i in sorted(pick.tolist())]
 
 
+def sheet_path(out_dir, split: str, path=None) -> Path:
+    """Where `write_sheet` writes: `path`, or OUT/sheet-<split>.png."""
+    return Path(path) if path is not None else Path(out_dir) / f"sheet-{split}.png"
+
+
 def write_sheet(out_dir, split: str = "test", n: int = 24, seed: int = 0, path=None,
-                thumb: int = 192) -> Path:
+                thumb: int = 192, progress=None) -> Path:
     """Write the contact sheet of `n` samples of `split` (chosen with `seed`) as a PNG; the
-    default path is `OUT/sheet-<split>.png`. Returns the path written."""
+    default path is `OUT/sheet-<split>.png`; `progress(1)` is called per sample decoded.
+    Returns the path written."""
     out_dir = Path(out_dir)
     manifest = ds.load(out_dir)
     keys = choose_keys(manifest, split, n, seed)
-    samples = ds.read_samples(out_dir, split, keys)
+    samples = ds.read_samples(out_dir, split, keys, progress)
     title = f"{manifest['recipe'].get('name', '')}  {split}  seed {seed}  {len(keys)} of {len(ds.split_keys(manifest, split))}"
     sheet = render_sheet(samples, thumb=thumb, title=title)
-    path = Path(path) if path is not None else out_dir / f"sheet-{split}.png"
+    path = sheet_path(out_dir, split, path)
     atomic_write_bytes(path, encode_png(sheet))
     return path
 

@@ -27,6 +27,7 @@ from dofsynth.files import atomic_write_bytes, canonical_json
 from dofsynth.io import decode_image, encode_png
 from dofsynth.optics.coc import coc_radius
 from dofsynth.codecs import decode_depth
+from dofsynth.progress import note
 from dofsynth.qa import dataset as ds
 from dofsynth.qa.draw import BG, DIM, FG, put_text, text_size
 
@@ -113,6 +114,7 @@ def split_stats(out_dir, split: str, progress=None) -> dict:
             progress(1)
     hists = {k: _unit_hist(v) for k, v in vals.items()}
     hists["coc"] = coc.histogram()
+    note(f"  {split}: {n} samples read")
     return {
         "samples": n,
         "size": size,

@@ -24,6 +24,7 @@ from dofsynth.files import is_temp_name, sha256_file
 from dofsynth.generate.locks import LOCK_NAME, lock_state
 from dofsynth.manifest import recipe_from_manifest
 from dofsynth.manifest.names import MANIFEST_NAME, PROGRESS_NAME
+from dofsynth.progress import note
 from dofsynth.qa import dataset as ds
 from dofsynth.qa.schema import check_pixels, check_record_schema
 from dofsynth.recipe import load_recipe
@@ -150,7 +151,7 @@ def verify_dataset(out_dir: str | Path, deep: bool = False, deep_n: int = 8, see
             if not _check_shard_file(out_dir, sh, report):
                 continue
             expected_keys = sh.keys()
-            seen, broken = [], False
+            seen, broken, problems_before = [], False, len(report.problems)
             try:
                 for key, members in read_shard(out_dir / sh.path):
                     seen.append(key)
@@ -165,6 +166,7 @@ def verify_dataset(out_dir: str | Path, deep: bool = False, deep_n: int = 8, see
                 report.add(sh.path, f"unreadable after {len(seen)} samples: {exc}")
             report.samples += len(seen)
             report.splits[split] += len(seen)
+            note(f"  {sh.path}: {len(seen)} samples checked, {len(report.problems) - problems_before} problems")
             if seen != expected_keys and not broken:
                 report.add(sh.path, f"holds {len(seen)} samples {_span(seen)}, the manifest says "
                                     f"{sh.samples} {_span(expected_keys)}")

@@ -14,8 +14,10 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from dofsynth.shipped import recipe_path
+import tomli_w
+
 from dofsynth.config import IntRange, Range, error, key, parse_toml, read, read_text, table, to_plain
+from dofsynth.shipped import recipe_path
 
 dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
 
@@ -168,23 +170,8 @@ def replace(cfg: Config, table_name: str, **kw) -> Config:
     return from_dict(d, f"<{table_name} override>")
 
 
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v)} to TOML")
-
-
 def to_toml(cfg: Config) -> str:
-    """The configuration as TOML text (round-trips through `from_dict(tomllib.loads(...))`)."""
-    lines = []
-    for table, values in cfg.to_dict().items():
-        lines.append(f"[{table}]")
-        lines += [f"{k} = {_toml_value(v)}" for k, v in values.items()]
-        lines.append("")
-    return "\n".join(lines)
+    """The configuration as TOML text (round-trips through `from_dict(tomllib.loads(...))`),
+    written by tomli_w: any string (a path with a quote, a backslash or a newline) stays valid."""
+    return tomli_w.dumps({table: {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
+                          for table, values in cfg.to_dict().items()})

@@ -252,8 +252,8 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
     model.train()
     t0 = time.perf_counter()
     samples, loss_value, row, eval_s = 0, None, {}, 0.0
-    per_step = cfg.data.batch_size * world
-    bar = progress.bar((end - step) * per_step, "train", enabled=master)
+    bar = progress.bar(end - step, "train", unit="step", enabled=master)  # steps: an epoch's short last batch
+    #                                                                     # must not leave the bar short of 100 %
     while step < end:
         lr = learning_rate(step, cfg)
         for group in optimizer.param_groups:
@@ -272,7 +272,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
         optimizer.zero_grad(set_to_none=True)
         step += 1
         samples += b["image"].shape[0] * world
-        bar.update(min(per_step, b["image"].shape[0] * world))
+        bar.update(1)
         last = step == end
 
         row = {}
