@@ -7,7 +7,8 @@ import pytest
 from dofsynth import __version__
 from dofsynth.cli import build_parser, main
 
-COMMANDS = ["assets", "demo", "depth", "docs", "eval", "generate", "manifest", "recipes", "render", "sheet", "stats", "train", "verify"]
+COMMANDS = ["assets", "demo", "depth", "docs", "eval", "generate", "manifest", "qa", "recipes", "render", "sheet", "stats", "train",
+            "verify"]
 
 
 def test_every_command_is_registered():

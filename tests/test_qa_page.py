@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 
 import pytest
 
@@ -79,16 +80,16 @@ def test_click_opens_the_full_image_and_keys_flip_zoom_and_step(browser, page):
     browser.find_element("css selector", ".sample figure[data-view='0']").click()
     assert browser.find_element("id", "viewer").is_displayed()
     first = _src(browser)
-    assert first.endswith(".aif.png")
+    assert first.endswith(".aif.webp")
     key = first.split(".")[0]
     _key(browser, "2")                  # target 1
-    assert _src(browser) == f"{key}.dof.1.png"
+    assert _src(browser) == f"{key}.dof.1.webp"
     _key(browser, "f")                  # flip to the all-in-focus image and back to target 1
-    assert _src(browser) == f"{key}.aif.png"
+    assert _src(browser) == f"{key}.aif.webp"
     _key(browser, "f")
-    assert _src(browser) == f"{key}.dof.1.png"
+    assert _src(browser) == f"{key}.dof.1.webp"
     _key(browser, "d")
-    assert _src(browser) == f"{key}.disparity.png"
+    assert _src(browser) == f"{key}.disparity.webp"
     natural = _js(browser, "return document.getElementById('view-img').naturalWidth")
     _key(browser, "z")
     assert _js(browser, "return document.getElementById('view-img').getBoundingClientRect().width") == natural
@@ -110,7 +111,7 @@ def test_the_focus_slider_walks_the_focus_sweep(browser, page):
                      "s.dispatchEvent(new Event('input'))", value)
         seen.append(_src(browser))
     key = seen[0].split(".")[0]
-    assert seen == [f"{key}.sweep.0.png", f"{key}.sweep.2.png", f"{key}.sweep.4.png"]
+    assert seen == [f"{key}.sweep.0.webp", f"{key}.sweep.2.webp", f"{key}.sweep.4.webp"]
     assert "focus sweep: focus 1.00" in browser.find_element("id", "label").text
     loaded = _js(browser, "const i = document.getElementById('view-img'); return i.complete && i.naturalWidth")
     assert loaded == 64
@@ -136,3 +137,114 @@ def test_filters_hide_rows(browser, page):
     browser.find_element("id", "f-coc-lo").send_keys(str(cut))
     assert len(visible()) == sum(c >= cut for c in cocs) < 5
     assert browser.get_log("browser") == []
+
+
+@pytest.fixture(scope="module")
+def review_set(smoke_set, tmp_path_factory):
+    """A copy of the smoke set to review (the shared one stays unmarked) and its page."""
+    import shutil
+
+    out = tmp_path_factory.mktemp("review") / "set"
+    shutil.copytree(smoke_set, out)
+    page = out.parent / "page"
+    assert main(["sheet", str(out), "--html", str(page), "--split", "all", "--n", "3", "--sweep", "1",
+                 "--sweep-steps", "3", "--thumb", "64", "-q"]) == 0
+    return out, page / "index.html"
+
+
+def _rows(browser):
+    return browser.find_elements("css selector", ".sample")
+
+
+def test_marks_are_made_kept_downloaded_applied_and_leave_training(browser, review_set, tmp_path):
+    import json
+
+    from dofsynth.qa.marks import set_marks
+    from dofsynth.train.data import find_segments
+
+    out, page = review_set
+    downloads = tmp_path / "downloads"
+    downloads.mkdir()
+    browser.execute_cdp_cmd("Browser.setDownloadBehavior", {"behavior": "allow", "downloadPath": str(downloads)})
+    browser.get(page.as_uri())
+    _js(browser, "localStorage.clear()")
+    browser.get(page.as_uri())
+    rows = _rows(browser)
+    bad, good = rows[0].get_attribute("data-key"), rows[1].get_attribute("data-key")
+    rows[0].find_element("css selector", ".marks button[data-mark='reject']").click()
+    rows[0].find_element("css selector", ".marks input").send_keys("halo at the hair")
+    rows[1].find_element("css selector", ".marks button[data-mark='keep']").click()
+    assert "reject" in rows[0].get_attribute("class")
+    assert browser.find_element("id", "download").text == "download marks (2)"
+    # the viewer's keys mark too: X rejects the sample shown, again unmarks it
+    rows[2].find_element("css selector", "figure[data-view='0']").click()
+    _key(browser, "x")
+    assert browser.find_element("id", "label").text.endswith("reject")
+    _key(browser, "x")
+    _key(browser, "\ue00c")
+    browser.get(page.as_uri())                         # marks survive a reload (the browser keeps them)
+    rows = _rows(browser)
+    assert "reject" in rows[0].get_attribute("class")
+    assert rows[0].find_element("css selector", ".marks input").get_attribute("value") == "halo at the hair"
+    _js(browser, "const f = document.getElementById('f-mark'); f.value = 'reject'; f.dispatchEvent(new Event('change'))")
+    assert [r.get_attribute("data-key") for r in _rows(browser) if r.is_displayed()] == [bad]
+    browser.find_element("id", "download").click()
+    got = downloads / "qa-marks.json"
+    for _ in range(200):
+        if got.is_file() and got.stat().st_size:
+            break
+        time.sleep(0.05)
+    marks = json.loads(got.read_text())
+    assert marks["format"] == "dofsynth-qa-marks/1" and [m["key"] for m in marks["marks"]] == sorted([bad, good])
+    by_key = {m["key"]: m for m in marks["marks"]}
+    assert by_key[bad]["mark"] == "reject" and by_key[bad]["note"] == "halo at the hair" and by_key[good]["mark"] == "keep"
+    # apply, verify, and training leaves the rejected sample out
+    assert main(["qa", "apply", str(got), str(out)]) == 0
+    assert set(set_marks(out)) == {bad, good}
+    assert main(["verify", str(out)]) == 0
+    split = bad.split("-")[0]
+    kept = {f"{split}-{i:07d}" for s in find_segments(out, split, exclude={bad}) for i in range(s.lo, s.hi)}
+    assert bad not in kept and good in kept
+    from dofsynth.train.config import load
+    from dofsynth.train.data import excluded
+
+    assert excluded(load("train-tiny"), out) == {bad}
+    assert main(["sheet", str(out), "--marked", "--split", split, "--png", str(tmp_path / "marked.png"), "-q"]) == 0
+
+
+def test_the_focus_slider_keeps_its_arrow_keys(browser, page):
+    browser.get(page.as_uri())
+    browser.find_element("css selector", ".sample figure").click()
+    first = browser.find_element("id", "label").text.split()[0]
+    slider = browser.find_element("id", "focus-slider")
+    slider.click()
+    before = float(slider.get_attribute("value"))
+    _key(browser, "\ue014")                            # arrow right, with the slider focused
+    assert float(slider.get_attribute("value")) > before
+    assert browser.find_element("id", "label").text.split()[0] == first   # the same sample
+    assert "focus sweep" in browser.find_element("id", "label").text
+
+
+def test_filters_answer_change_events_too(browser, page):
+    browser.get(page.as_uri())
+    _js(browser, "const s = document.getElementById('f-split'); s.value = 'test'; s.dispatchEvent(new Event('change'))")
+    shown = [r for r in _rows(browser) if r.is_displayed()]
+    assert len(shown) == 2 and "2 of 5 shown" in browser.find_element("id", "count").text
+    _js(browser, "const s = document.getElementById('f-coc-lo'); s.value = '999'; s.dispatchEvent(new Event('change'))")
+    assert not any(r.is_displayed() for r in _rows(browser))
+
+
+def test_zoom_is_centred_and_thumbnail_columns_line_up(browser, page):
+    browser.set_window_size(1920, 1000)
+    try:
+        browser.get(page.as_uri())
+        lefts = [[f.location["x"] for f in r.find_elements("css selector", "figure")] for r in _rows(browser)]
+        assert all(row == lefts[0][:len(row)] for row in lefts), lefts       # the same columns in every row
+        browser.find_element("css selector", ".sample figure[data-view='0']").click()
+        _key(browser, "z")                                                     # 100 %
+        box = _js(browser, "return document.getElementById('view-img').getBoundingClientRect().toJSON()")
+        stage = _js(browser, "return document.getElementById('stage').getBoundingClientRect().toJSON()")
+        assert abs(box["x"] + box["width"] / 2 - (stage["x"] + stage["width"] / 2)) <= 1
+        assert abs(box["y"] + box["height"] / 2 - (stage["y"] + stage["height"] / 2)) <= 1
+    finally:
+        browser.set_window_size(1200, 900)

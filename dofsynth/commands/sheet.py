@@ -19,8 +19,9 @@ def register(subparsers) -> None:
             "With --html, also write a QA page (one folder that works from file://, no server): "
             "thumbnails that open the full image, a key to flip between the all-in-focus image and "
             "each target, zoom at 100 % and 400 %, a focus slider over a focus sweep (scenes "
-            "re-rendered from their JSON), filters by split, background, focus, CoC and asset, and "
-            "each sample's record. `dofsynth docs qa` describes it."
+            "re-rendered from their JSON), filters by split, background, focus, CoC, asset and mark, "
+            "each sample's record, and review marks (reject / keep, a note) downloaded as qa-marks.json "
+            "for `dofsynth qa apply`. `dofsynth docs qa` describes it."
         ),
     )
     p.add_argument("out", help="the data set folder (holds manifest.json)")
@@ -32,6 +33,9 @@ def register(subparsers) -> None:
     p.add_argument("--png", dest="path", default=None, metavar="PNG",
                    help="where to write the sheet (default: OUT/sheet-SPLIT.png)")
     p.add_argument("--thumb", type=int, default=192, help="tile height in pixels (default: 192)")
+    p.add_argument("--marked", action="store_true",
+                   help="draw the samples a review marked (OUT/qa-marks.json, `dofsynth qa apply`), each captioned "
+                        "with its mark and note, instead of --n picked with --seed")
     p.add_argument("--html", default=None, metavar="DIR",
                    help="also write the QA page DIR/index.html and its images DIR/img/")
     p.add_argument("--sweep", type=int, default=3, help="how many samples get a focus sweep in --html (default: 3)")
@@ -60,11 +64,12 @@ def run(args) -> int:
     with bar(total, "sheet", leave=False) as progress:
         for split in splits:
             path = write_sheet(args.out, split=split, n=args.n, seed=args.seed, path=args.path, thumb=args.thumb,
-                               progress=progress.update)
+                               progress=progress.update, marked=args.marked)
             note(f"  {split}: {path}")
             say(path)
     if args.html:
-        page = write_html(args.out, args.html, split=args.split, n=args.n, seed=args.seed,
-                          sweep=args.sweep, sweep_steps=args.sweep_steps, thumb=args.thumb)
+        with bar(total, "page", leave=False) as progress:
+            page = write_html(args.out, args.html, split=args.split, n=args.n, seed=args.seed, sweep=args.sweep,
+                              sweep_steps=args.sweep_steps, thumb=args.thumb, progress=progress.update)
         say(page)
     return 0

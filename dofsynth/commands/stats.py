@@ -22,6 +22,8 @@ def register(subparsers) -> None:
     p.add_argument("--json", default=None, metavar="FILE", help="also write the numbers as JSON")
     p.add_argument("--split", action="append", default=None,
                    help="only this split (repeatable; default: every split)")
+    p.add_argument("--marked", action="store_true",
+                   help="also list every sample a review marked (OUT/qa-marks.json): key, mark, note")
     p.set_defaults(func=run)
 
 
@@ -31,6 +33,7 @@ def run(args) -> int:
     from dofsynth.files import check_writable
     from dofsynth.progress import bar as progress_bar
     from dofsynth.qa.dataset import sample_count
+    from dofsynth.qa.marks import marks_summary, set_marks
     from dofsynth.qa.stats import write_stats
 
     check_writable(args.path or Path(args.out) / "stats.png", "stats chart")
@@ -43,6 +46,12 @@ def run(args) -> int:
         h = st["histograms"]
         say(f"{split}: {st['samples']} samples, {h['focus']['total']} targets, "
             f"{h['coc']['total']} target pixels; backgrounds {st['counts']['background_mode']}")
+    marks = set_marks(args.out)
+    if marks:
+        say(f"review marks: {marks_summary(marks)} (OUT/qa-marks.json; training leaves rejected samples out)")
+    if args.marked:
+        for key, m in sorted(marks.items()):
+            say(f"  {key}  {m['mark']:<6}  {m['note']}")
     say(png)
     if js:
         say(js)

@@ -21,6 +21,7 @@ from dofsynth.image import resize, to_rgb8
 from dofsynth.io import decode_image, encode_png
 from dofsynth.qa import dataset as ds
 from dofsynth.qa.draw import BG, DIM, FG, colorize_disparity, coverage_overlay, put_text, scale_bar, text_size
+from dofsynth.qa.marks import set_marks
 from dofsynth.sample import focus_sweep
 from dofsynth.scene import Scene, sample_scene
 
@@ -160,7 +161,7 @@ def _draw_row(sheet: np.ndarray, lay: SheetLayout, row: int, s: dict) -> None:
     tw, th = lay.thumb_w, lay.thumb_h
     rec = s["record"]
     x, y, w, h = lay.caption(row)
-    caption = f"{s['key']}    {asset_names(rec)}"
+    caption = f"{s['key']}    {s['label'] + '    ' if s.get('label') else ''}{asset_names(rec)}"
     put_text(sheet, caption, x, y + (h - text_size(caption)[1]) // 2 - 1, FG, max_width=w)
 
     aif = to_rgb8(s["aif"])
@@ -202,14 +203,24 @@ def sheet_path(out_dir, split: str, path=None) -> Path:
 
 
 def write_sheet(out_dir, split: str = "test", n: int = 24, seed: int = 0, path=None,
-                thumb: int = 192, progress=None) -> Path:
+                thumb: int = 192, progress=None, marked: bool = False) -> Path:
     """Write the contact sheet of `n` samples of `split` (chosen with `seed`) as a PNG; the
     default path is `OUT/sheet-<split>.png`; `progress(1)` is called per sample decoded.
-    Returns the path written."""
+    `marked`: the samples a review marked instead (up to `n`, by key), each captioned with its
+    mark and note. Returns the path written."""
     out_dir = Path(out_dir)
     manifest = ds.load(out_dir)
-    keys = choose_keys(manifest, split, n, seed)
+    marks = set_marks(out_dir)
+    if marked:
+        keys = sorted(k for k, m in marks.items() if m["split"] == split)[:n]
+        if not keys:
+            raise ValueError(f"{out_dir}: no {split} sample has a review mark (dofsynth qa apply records them)")
+    else:
+        keys = choose_keys(manifest, split, n, seed)
     samples = ds.read_samples(out_dir, split, keys, progress)
+    for s in samples:
+        if s["key"] in marks:
+            s["label"] = f"{marks[s['key']]['mark'].upper()} {marks[s['key']]['note']}".strip()
     title = f"{manifest['recipe'].get('name', '')}  {split}  seed {seed}  {len(keys)} of {len(ds.split_keys(manifest, split))}"
     sheet = render_sheet(samples, thumb=thumb, title=title)
     path = sheet_path(out_dir, split, path)

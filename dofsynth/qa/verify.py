@@ -8,6 +8,8 @@
   disparity map agrees with the record (opaque front/middle pixels carry that plane's
   disparity within 1e-6, bare background pixels the flat value or the recomputed ramp);
 - that no asset appears in both splits (by asset id and by content sha256);
+- a review's marks (OUT/qa-marks.json): a note of how many samples were rejected and kept,
+  and a problem for each mark that no longer fits the set (dofsynth.qa.marks);
 - with `deep=True`, that a sample of records re-rendered from their JSON alone gives the
   same member bytes.
 """
@@ -26,6 +28,7 @@ from dofsynth.manifest import recipe_from_manifest
 from dofsynth.manifest.names import MANIFEST_NAME, PROGRESS_NAME
 from dofsynth.progress import note
 from dofsynth.qa import dataset as ds
+from dofsynth.qa.marks import MARKS_NAME, marks_summary, set_marks, stale
 from dofsynth.qa.schema import check_pixels, check_record_schema
 from dofsynth.recipe import load_recipe
 from dofsynth.sample import render_sample
@@ -172,6 +175,7 @@ def verify_dataset(out_dir: str | Path, deep: bool = False, deep_n: int = 8, see
                                     f"{sh.samples} {_span(expected_keys)}")
     _check_totals(manifest, shards, report)
     _check_leaks(assets, report)
+    _check_marks(out_dir, manifest, report)
     if deep and raw_by_key:
         _deep_check(out_dir, manifest, raw_by_key, report, recipe_path)
     return report
@@ -241,6 +245,25 @@ def _check_leaks(assets: dict[str, dict], report: Report) -> None:
                 report.add(assets[b][(kind, value)],
                            f"asset {kind} {shown} is in both splits: {b!r} here and {a!r} "
                            f"at {assets[a][(kind, value)]}")
+
+
+def _check_marks(out_dir: Path, manifest: dict, report: Report) -> None:
+    """A review's marks (OUT/qa-marks.json): reported as a note; marks that no longer fit the
+    set (a sample gone, a shard made again since the review) are problems."""
+    if not (out_dir / MARKS_NAME).is_file():
+        return
+    try:
+        marks = set_marks(out_dir)
+    except ValueError as exc:
+        report.add(MARKS_NAME, str(exc))
+        return
+    for why in stale(marks, manifest):
+        report.add(MARKS_NAME, f"stale review mark: {why}")
+    bad = sorted(k for k, m in marks.items() if m["mark"] == "reject")
+    if marks:
+        report.notes.append(Problem(MARKS_NAME, f"review: {marks_summary(marks)}"
+                                    + (f"; rejected: {', '.join(bad[:10])}{' ...' if len(bad) > 10 else ''}"
+                                       if bad else "") + " (training leaves rejected samples out)"))
 
 
 def _deep_picks(shards: dict[str, list], n: int, seed: int) -> set[str]:

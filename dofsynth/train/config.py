@@ -37,6 +37,8 @@ class DataConfig:
     shuffle_buffer: int = key(64, lo=1)  # decoded crops held in the shuffle buffer (per DataLoader worker)
     batch_size: int = key(8, lo=1)       # per process (the global batch is batch_size * world size)
     num_workers: int = key(2, lo=0)      # DataLoader worker processes per training process
+    exclude: str = key("rejected", choices=("rejected", "none"))  # leave out samples a review rejected
+    #                                                             # (OUT/qa-marks.json, dofsynth qa apply)
 
 
 @dataclass_kw

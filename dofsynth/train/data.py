@@ -51,6 +51,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from dofsynth.color import srgb_to_linear
 from dofsynth.io import decode_image, unit_float
 from dofsynth.manifest import load_manifest, manifest_shard_infos, recipe_from_manifest
+from dofsynth.qa.marks import rejected
 from dofsynth.optics.coc import coc_radius
 from dofsynth.codecs import decode_depth
 from dofsynth.rng import SPLIT_ID, sample_key, stream_int, stream_rng
@@ -78,8 +79,17 @@ def held_out(n: int, val_share: float) -> int:
     return 0 if val_share <= 0 or n < 2 else min(n - 1, max(1, round(n * val_share)))
 
 
-def find_segments(data_dir: str | Path, split: str, part: str = "all", val_share: float = 0.0) -> list[Segment]:
-    """The samples of `split` (its `part`, see PARTS) that OUT/manifest.json lists, in index order."""
+def excluded(cfg: Config, data_dir: str | Path) -> set[str]:
+    """The sample keys `[data] exclude` leaves out of data set `data_dir`: those a review
+    rejected (OUT/qa-marks.json), or none."""
+    return rejected(data_dir) if cfg.data.exclude == "rejected" else set()
+
+
+def find_segments(data_dir: str | Path, split: str, part: str = "all", val_share: float = 0.0,
+                  exclude=()) -> list[Segment]:
+    """The samples of `split` (its `part`, see PARTS) that OUT/manifest.json lists, in index
+    order, less the keys in `exclude` (the validation share is cut before they are left out,
+    so a review does not move samples between training and validation)."""
     data_dir = Path(data_dir)
     infos = sorted(manifest_shard_infos(load_manifest(data_dir)).get(split, []), key=lambda i: i.first_index)
     if not infos:
@@ -90,6 +100,10 @@ def find_segments(data_dir: str | Path, split: str, part: str = "all", val_share
     segs = [Segment(str(data_dir / i.path), max(lo, i.first_index), min(hi, i.first_index + i.samples), i.sha256)
             for i in infos]
     segs = [s for s in segs if s.hi > s.lo]
+    drop = sorted(int(k.rsplit("-", 1)[1]) for k in exclude if k.startswith(f"{split}-"))
+    for i in drop:  # split the segment holding sample i around it
+        segs = [part for s in segs for part in ((dataclasses.replace(s, hi=i), dataclasses.replace(s, lo=i + 1))
+                                                if s.lo <= i < s.hi else (s,)) if part.hi > part.lo]
     if not segs:
         raise FileNotFoundError(f"{data_dir}: the {split} split has no {part} samples (val_share {val_share})")
     return segs
@@ -341,7 +355,7 @@ def quiet_worker(_worker_id: int) -> None:
 def make_loader(data_dir: str | Path, split: str, cfg: Config, *, train: bool, seed: int, part: str = "all",
                 pin_memory: bool = False) -> tuple[DofShards, DataLoader]:
     """The dataset and a DataLoader of [data] batch_size / num_workers over a split's `part`."""
-    segs = find_segments(data_dir, split, part, cfg.data.val_share)
+    segs = find_segments(data_dir, split, part, cfg.data.val_share, excluded(cfg, data_dir))
     ds = DofShards(segs, cfg, train=train, seed=seed, split=split)
     workers = cfg.data.num_workers
     loader = DataLoader(ds, batch_size=cfg.data.batch_size, num_workers=workers, pin_memory=pin_memory,

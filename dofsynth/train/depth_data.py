@@ -41,7 +41,7 @@ from dofsynth.codecs import decode_depth
 from dofsynth.rng import sample_key, stream_rng
 from dofsynth.shards import member_index, read_members
 from dofsynth.train.config import Config
-from dofsynth.train.data import quiet_worker, find_segments, process_slot
+from dofsynth.train.data import excluded, find_segments, process_slot, quiet_worker
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".exr")
 DEPTH_SUFFIXES = (".exr", ".png", ".tif", ".tiff", ".npy")
@@ -78,16 +78,17 @@ def pair_files(root: str | Path, a: str, b: str, b_suffixes: tuple[str, ...]) ->
     return [(left[s], right[s]) for s in sorted(left)]
 
 
-def shard_items(data_dir: str | Path, split: str, part: str, val_share: float) -> list[Item]:
+def shard_items(data_dir: str | Path, split: str, part: str, val_share: float, exclude=()) -> list[Item]:
     return [Item("shard", seg.path, sample_key(split, i), seg.sha256)
-            for seg in find_segments(data_dir, split, part, val_share) for i in range(seg.lo, seg.hi)]
+            for seg in find_segments(data_dir, split, part, val_share, exclude) for i in range(seg.lo, seg.hi)]
 
 
 def sources(cfg: Config, data_dir: str | Path | None, part: str) -> tuple[list[Item], list[Item]]:
     """(depth items, segmentation items) of the config's sources for the train split's `part`
     ("fit" for training, "val" for validation: the shards' held-out share alone)."""
     d = cfg.depth
-    depth = shard_items(data_dir, "train", part, cfg.data.val_share) if d.shards and data_dir else []
+    depth = (shard_items(data_dir, "train", part, cfg.data.val_share, excluded(cfg, data_dir))
+             if d.shards and data_dir else [])
     if part == "val":
         return depth, []
     if d.rgbd:

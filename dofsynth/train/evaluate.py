@@ -39,7 +39,7 @@ from dofsynth.optics.aperture import aperture_from_dict
 from dofsynth.render.look import Look, render_photo
 from dofsynth.train.checkpoint import load_model
 from dofsynth.train.config import AugmentConfig, load
-from dofsynth.train.data import find_segments, raw_samples, sample_rng, training_item
+from dofsynth.train.data import excluded, find_segments, raw_samples, sample_rng, training_item
 from dofsynth.train.depth import depth_errors, predict_disparity
 
 METHODS = ("network", "classical", "all-in-focus")
@@ -120,7 +120,7 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
     augment = depth_corruption(depth, cfg.augment)
     to_srgb = (lambda x: x) if cfg.data.color == "srgb" else linear_to_srgb
     items = []
-    for n, raw in enumerate(raw_samples(find_segments(data_dir, split), split)):
+    for n, raw in enumerate(raw_samples(find_segments(data_dir, split, exclude=excluded(cfg, data_dir)), split)):
         if limit is not None and n >= limit:
             break
         record = json.loads(raw["json"])
@@ -166,7 +166,8 @@ def evaluate_depth(model, cfg, run_dir: str | Path, data_dir: str | Path, *, spl
     train split's held-out [data] val_share; whole images at the training scale); returns {"kind": "depth", "table": [{"method", "mae", "mae_spline", "n"}],
     "items": [...]} (methods "network" and "constant") and writes RUN/eval.{csv,json}."""
     items = []
-    for n, raw in enumerate(raw_samples(find_segments(data_dir, split, part, cfg.data.val_share), split)):
+    segments = find_segments(data_dir, split, part, cfg.data.val_share, excluded(cfg, data_dir))
+    for n, raw in enumerate(raw_samples(segments, split)):
         if limit is not None and n >= limit:
             break
         key = raw["__key__"]
