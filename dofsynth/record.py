@@ -145,7 +145,7 @@ for _m in (
            read=lambda d, name: decode_exr(d, name, channels=None), before_blur=True),
     Member("dp.N.left.png", "PNG", "uint8", "RGB", "0-255",
            "optional (render.members dual_pixel): target N through the left half of the aperture, sRGB; "
-           "dof.N.png is then their area-weighted sum",
+           "with the right one it adds up to dof.N.png in linear light (weights: the halves' areas)",
            option="dual_pixel", write=lambda s, n: encode_srgb_png_planar(s.view(n, "left")), read=_png),
     Member("dp.N.right.png", "PNG", "uint8", "RGB", "0-255",
            "optional (render.members dual_pixel): target N through the right half of the aperture, sRGB",

@@ -12,7 +12,8 @@ for, each made by its writer from a `SampleRender`:
 - `depth.exr`, `cover.png`: the disparity map and the two coverages;
 - with the recipe's `render.members`: `coc.N.exr`, `layer.K.exr` (each plane before blur and
   boost), `dp.N.left.png` / `dp.N.right.png` (the left and right halves of the aperture: a
-  dual-pixel pair; `dof.N.png` is then their area-weighted sum, a two-cell sub-aperture render).
+  dual-pixel pair, rendered and mapped back like the target, then scaled so that their
+  area-weighted sum is the target in linear light; `dof.N.png` is the same with or without them).
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ import numpy as np
 from dofsynth.assets import AssetLibrary
 from dofsynth.compose import scene_layers
 from dofsynth.record import held_members, unknown_options
-from dofsynth.render.look import prepare_planes, render_look, restore
+from dofsynth.render.look import prepare_planes, render_look, restore, views_adding_up
 from dofsynth.render.subaperture import halves
 from dofsynth.scene import Scene, Target
 
@@ -40,7 +41,8 @@ class SampleRender:
         self.planes = list(self._layers.planes)
         self.disparity = self._layers.disparity
         self._blur_planes = None
-        self._views = None  # (n, [left, right] unrestored, area shares) of the last dual-pixel target
+        self._targets: dict[int, np.ndarray] = {}  # target n, restored (kept for its dual-pixel views)
+        self._views = None  # (n, (left, right)) of the last dual-pixel target, adding up to it
 
     def _prepared(self) -> list:
         if self._blur_planes is None:
@@ -58,25 +60,21 @@ class SampleRender:
         t = self.scene.targets[n]
         return render_look(self._prepared(), t.focus, t.max_coc, aperture or self.scene.aperture, self.look)
 
-    def _dual(self, n: int) -> list:
-        if self._views is None or self._views[0] != n:
-            (left, wl), (right, wr) = halves(self.scene.aperture)
-            self._views = (n, [self._render(n, left), self._render(n, right)], (wl, wr))
-        return self._views
-
     def target(self, n: int) -> np.ndarray:
-        """Target n (3, H, W), restored; with dual-pixel views the area-weighted sum of the two."""
-        if "dual_pixel" in self.scene.options.members:
-            _, (left, right), (wl, wr) = self._dual(n)
-            img = left * np.float32(wl) + right * np.float32(wr)
-        else:
-            img = self._render(n)
-        return restore(img, self.look)
+        """Target n (3, H, W), restored: the same whether dual-pixel views are asked for or not."""
+        if n not in self._targets:
+            self._targets = {n: restore(self._render(n), self.look)}  # one at a time: memory
+        return self._targets[n]
 
     def view(self, n: int, side: str) -> np.ndarray:
-        """Target n through the left or right half of the aperture (3, H, W), restored."""
-        _, views, _ = self._dual(n)
-        return restore(views[("left", "right").index(side)].copy(), self.look)
+        """Target n through the left or right half of the aperture (3, H, W): the two half
+        renders, each mapped back like the target, then made to add up to it exactly
+        (`views_adding_up`: wl * left + wr * right = target in linear light)."""
+        if self._views is None or self._views[0] != n:
+            (left, wl), (right, wr) = halves(self.scene.aperture)
+            raw = [restore(self._render(n, half), self.look) for half in (left, right)]
+            self._views = (n, views_adding_up(self.target(n), *raw, wl, wr))
+        return self._views[1][("left", "right").index(side)]
 
 
 def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:

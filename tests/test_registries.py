@@ -239,3 +239,33 @@ def test_the_docs_method_table_is_the_registry():
     for name, m in METHODS.items():
         row = f"| `{name}` | {m.renderer_id} | {', '.join(m.options)} | {m.summary} |"
         assert row in text, row
+
+
+def test_dual_pixel_views_add_up_to_the_target_which_they_leave_unchanged(tmp_path):
+    """With the highlight boost on (the smoke recipe's): wl * L + wr * R = target within 1/255
+    (in sRGB codes, after each view is rounded to 8 bits), and the targets are the bytes of
+    the same recipe without the member."""
+    from dofsynth.color import linear_to_srgb, srgb_to_linear
+    from dofsynth.optics import aperture_from_dict
+    from dofsynth.render.subaperture import halves
+
+    dp, plain = tmp_path / "dp", tmp_path / "plain"
+    generate(_recipe(tmp_path, 'members = ["dual_pixel"]\n', name="dp", samples="{ train = 3, test = 1 }"), dp,
+             workers=1)
+    generate(_recipe(tmp_path, "", name="plain", samples="{ train = 3, test = 1 }"), plain, workers=1)
+    worst, n = 0, 0
+    for split in ("train", "test"):
+        for a, b in zip(ds.iter_samples(dp, split, decode=False), ds.iter_samples(plain, split, decode=False)):
+            ma, mb = a["members"], b["members"]
+            rec = json.loads(ma["json"])
+            assert rec["options"]["highlight"] is not None
+            (_, wl), (_, wr) = halves(aperture_from_dict(rec["aperture"]))
+            s = decode_sample(ma, a["key"])
+            for i, target in enumerate(s["dof"]):
+                assert ma[f"dof.{i}.png"] == mb[f"dof.{i}.png"]
+                left, right = (s["optional"][f"dp.{i}.{side}.png"] for side in ("left", "right"))
+                total = linear_to_srgb(wl * srgb_to_linear(left) + wr * srgb_to_linear(right))
+                worst = max(worst, float(np.abs(np.round(total * 255) - np.round(target * 255)).max()))
+                assert not np.array_equal(left, right)      # the views differ: they carry parallax
+                n += 1
+    assert n == 8 and worst <= 1.0, worst
