@@ -5,6 +5,7 @@ Every module in `dofsynth.commands` that defines `register(subparsers)` adds one
 """
 from __future__ import annotations
 
+import _thread
 import argparse
 import importlib
 import pkgutil
@@ -21,8 +22,72 @@ class Terminated(BaseException):
     that a run stops as on Ctrl-C: the lock released, temp files removed, one line printed."""
 
 
-def _terminate(signum, frame):
-    raise Terminated()
+_pending: list[int] = []   # a stop signal that came inside a callback, raised at the next import
+_closing: list[bool] = []  # set while main ends: a signal then changes nothing
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C as raised here. A subclass on purpose: CPython remembers a bare KeyboardInterrupt
+    that escaped code it ran for an extension (an import's PyRun_*) and, at exit, kills itself
+    with SIGINT, even when the interrupt was handled; it checks the exact type."""
+
+
+def _exception(signum: int) -> BaseException:
+    return Interrupted() if signum == signal.SIGINT else Terminated()
+
+
+def _stop(signum, frame):
+    """Ctrl-C and SIGTERM as exceptions in the main thread (KeyboardInterrupt, Terminated).
+    One that lands in a finalizer or the weakref callback of an import lock (which swallow
+    exceptions: a traceback "Exception ignored" and the signal lost) is kept and raised by the
+    next import instead (`_on_import`; imports come in bursts while a command starts) or once
+    the command line is parsed."""
+    if _closing:
+        return
+    if _swallowing(frame):
+        _pending.append(signum)
+        threading.Timer(0.05, _again, (signum,)).start()  # in case no import comes soon
+        return
+    _pending.clear()
+    raise _exception(signum)
+
+
+def _again(signum: int) -> None:
+    """Deliver a kept stop signal to the main thread again, unless it was raised meanwhile."""
+    if _pending and not _closing:
+        _thread.interrupt_main(signum)
+
+
+def _swallowing(frame) -> bool:
+    """Whether code at `frame` runs where Python ignores exceptions: a finalizer (__del__) or
+    the weakref callback of an import lock (its frames up the stack)."""
+    while frame is not None:
+        code = frame.f_code
+        if code.co_name == "__del__" or (code.co_name == "cb" and code.co_filename.startswith("<frozen importlib")):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _on_import(event: str, args) -> None:
+    """Audit hook: a kept stop signal is raised by the next import statement."""
+    if _pending and event == "import":
+        signum = _pending[-1]
+        _pending.clear()
+        raise _exception(signum)
+
+
+_hooked: list[bool] = []
+
+
+def _interrupted_by(exc: BaseException) -> BaseException | None:
+    """The KeyboardInterrupt or Terminated behind an error (an extension module whose import a
+    signal interrupted fails with ImportError("initialization failed")), else None."""
+    while exc is not None:
+        if isinstance(exc, (KeyboardInterrupt, Terminated)):
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -96,11 +161,23 @@ def main(argv: list[str] | None = None) -> int:
     that found problems), 130 on Ctrl-C, 143 on SIGTERM. A command that can continue later
     says how (`resume_hint`)."""
     main_thread = threading.current_thread() is threading.main_thread()
+    _closing.clear()
     if main_thread:  # first: a signal while the parser imports the commands is handled too
-        signal.signal(signal.SIGTERM, _terminate)
+        if not _hooked:
+            sys.addaudithook(_on_import)
+            _hooked.append(True)
+        old = {s: signal.signal(s, _stop) for s in (signal.SIGTERM, signal.SIGINT)
+               if s == signal.SIGTERM or signal.getsignal(s) is signal.default_int_handler}
     name, again = "dofsynth", ""
     try:
-        parser = build_parser()
+        # the parser imports every command (numpy, OpenCV): Ctrl-C and SIGTERM wait until it is
+        # built, then stop the run here, never inside the import machinery's callbacks
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM}) if main_thread else None
+        try:
+            parser = build_parser()
+        finally:
+            if held is not None:
+                signal.pthread_sigmask(signal.SIG_SETMASK, held)
         args = parser.parse_args(argv)
         if not getattr(args, "func", None):
             parser.print_help()
@@ -108,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.quiet and args.verbose:
             raise ValueError("-q/--quiet and -v/--verbose: give one of them")
         progress.set_verbosity(args.quiet, args.verbose)
+        if _pending:  # a stop kept during the imports, none of which came after it
+            _on_import("import", ())
         hint = getattr(args, "resume_hint", None)
         again = f"; {line}" if hint and (line := hint(args)) else ""
         name = f"dofsynth {args.command}"
@@ -116,6 +195,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: error: {exc}", file=sys.stderr)
         return 2
     except ImportError as exc:
+        stop = _interrupted_by(exc)
+        if stop is not None:
+            return _stopped(name, again, stop)
         line = _missing_extra(exc)
         if line is None:
             raise
@@ -130,15 +212,23 @@ def main(argv: list[str] | None = None) -> int:
     except RuntimeError as exc:
         print(f"{name}: error: {exc}{again}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print(f"{name}: interrupted{again}", file=sys.stderr)
-        return 130
-    except Terminated:
+    except (KeyboardInterrupt, Terminated) as stop:
+        return _stopped(name, again, stop)
+    finally:
+        _closing.append(True)
+        _pending.clear()
+        if main_thread:
+            for s, handler in old.items():
+                signal.signal(s, handler if s == signal.SIGINT else signal.SIG_DFL)
+
+
+def _stopped(name: str, again: str, stop: BaseException) -> int:
+    """The one line and the status of a run stopped by Ctrl-C (130) or SIGTERM (143)."""
+    if isinstance(stop, Terminated):
         print(f"{name}: terminated (SIGTERM){again}", file=sys.stderr)
         return 143
-    finally:
-        if main_thread:
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    print(f"{name}: interrupted{again}", file=sys.stderr)
+    return 130
 
 
 if __name__ == "__main__":
