@@ -82,7 +82,8 @@ _hooked: list[bool] = []
 
 def _interrupted_by(exc: BaseException) -> BaseException | None:
     """The KeyboardInterrupt or Terminated behind an error (an extension module whose import a
-    signal interrupted fails with ImportError("initialization failed")), else None."""
+    signal interrupted fails with ImportError("initialization failed"), a class body's
+    __set_name__ with RuntimeError), or the stop itself; else None."""
     while exc is not None:
         if isinstance(exc, (KeyboardInterrupt, Terminated)):
             return exc
@@ -191,35 +192,44 @@ def main(argv: list[str] | None = None) -> int:
         again = f"; {line}" if hint and (line := hint(args)) else ""
         name = f"dofsynth {args.command}"
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"{name}: error: {exc}", file=sys.stderr)
-        return 2
-    except ImportError as exc:
-        stop = _interrupted_by(exc)
-        if stop is not None:
-            return _stopped(name, again, stop)
-        line = _missing_extra(exc)
-        if line is None:
+    except BaseException as exc:  # SystemExit (argparse, --help) goes on as it is
+        if isinstance(exc, SystemExit):
             raise
-        print(f"{name}: error: {line}", file=sys.stderr)
-        return 2
-    except (FileExistsError, IsADirectoryError, NotADirectoryError, PermissionError) as exc:
-        print(f"{name}: error: {_os_error(exc)}", file=sys.stderr)  # a path given that cannot be used: input
-        return 2
-    except OSError as exc:
-        print(f"{name}: error: {_os_error(exc)}{again}", file=sys.stderr)
-        return 1
-    except RuntimeError as exc:
-        print(f"{name}: error: {exc}{again}", file=sys.stderr)
-        return 1
-    except (KeyboardInterrupt, Terminated) as stop:
-        return _stopped(name, again, stop)
+        return _failed(name, again, exc)
     finally:
         _closing.append(True)
         _pending.clear()
         if main_thread:
             for s, handler in old.items():
                 signal.signal(s, handler if s == signal.SIGINT else signal.SIG_DFL)
+
+
+def _failed(name: str, again: str, exc: BaseException) -> int:
+    """The one line and the status of a failed run (the rule of `main`); an error that a
+    signal caused (Python wraps an exception raised inside an import, a __set_name__, ...)
+    counts as that signal. Anything else unexpected goes on, with its traceback."""
+    stop = _interrupted_by(exc)
+    if stop is not None:
+        return _stopped(name, again, stop)
+    if isinstance(exc, (ValueError, FileNotFoundError)):
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        return 2
+    if isinstance(exc, ImportError):
+        line = _missing_extra(exc)
+        if line is None:
+            raise exc
+        print(f"{name}: error: {line}", file=sys.stderr)
+        return 2
+    if isinstance(exc, (FileExistsError, IsADirectoryError, NotADirectoryError, PermissionError)):
+        print(f"{name}: error: {_os_error(exc)}", file=sys.stderr)  # a path given that cannot be used: input
+        return 2
+    if isinstance(exc, OSError):
+        print(f"{name}: error: {_os_error(exc)}{again}", file=sys.stderr)
+        return 1
+    if isinstance(exc, RuntimeError):
+        print(f"{name}: error: {exc}{again}", file=sys.stderr)
+        return 1
+    raise exc
 
 
 def _stopped(name: str, again: str, stop: BaseException) -> int:
