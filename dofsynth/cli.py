@@ -40,8 +40,8 @@ def _stop(signum, frame):
     """Ctrl-C and SIGTERM as exceptions in the main thread (KeyboardInterrupt, Terminated).
     One that lands in a finalizer or the weakref callback of an import lock (which swallow
     exceptions: a traceback "Exception ignored" and the signal lost) is kept and raised by the
-    next import instead (`_on_import`; imports come in bursts while a command starts) or once
-    the command line is parsed."""
+    next import instead (`_on_import`; imports come in bursts while a command starts), once
+    the command line is parsed, or 50 ms later (`_again`), whichever comes first."""
     if _closing:
         return
     if _swallowing(frame):
