@@ -112,9 +112,9 @@ class ApertureRules:
 @dataclass_kw
 class HighlightRules:
     enabled: bool = key(True)
-    threshold: float = key(0.9, lo=0.0, hi=0.999)
-    gain: float = key(4.0, lo=0.0, hi=1000.0)
-    power: float = key(2.0, lo=0.0, hi=16.0, lo_open=True)
+    threshold: float = key(Highlight.threshold, lo=0.0, hi=0.999)   # defaults: render.look.Highlight's
+    gain: float = key(Highlight.gain, lo=0.0, hi=1000.0)
+    power: float = key(Highlight.power, lo=0.0, hi=16.0, lo_open=True)
 
 
 @dataclass_kw

@@ -87,6 +87,12 @@ def register_member(m: Member) -> Member:
     return m
 
 
+def member_of(name: str) -> Member | None:
+    """The table's member a tar member name is (its suffix, "KEY." or a path in front allowed)."""
+    parts = name.rsplit("/", 1)[-1].split(".")
+    return next((m for i in range(len(parts)) for m in MEMBERS.values() if m.matches(".".join(parts[i:]))), None)
+
+
 def member_options() -> tuple[str, ...]:
     """The names `render.members` accepts: every option of the table, in table order."""
     return tuple(dict.fromkeys(m.option for m in MEMBERS.values() if m.option))
@@ -194,9 +200,8 @@ def exr_handler(key: str, data: bytes):
     if not key.lower().endswith("exr"):
         return None
     name = key.rsplit("/", 1)[-1]
-    m = next((m for m in MEMBERS.values() if m.codec == "EXR" and any(m.matches(".".join(name.split(".")[i:]))
-                                                                       for i in range(name.count(".")))), None)
-    return m.read(data, name) if m is not None else decode_exr(data, name, channels=None)
+    m = member_of(name)
+    return m.read(data, name) if m is not None and m.codec == "EXR" else decode_exr(data, name, channels=None)
 
 
 class SampleDecodeError(ValueError):
@@ -255,8 +260,7 @@ def decode_sample(members: dict[str, bytes], key: str | None = None) -> dict:
         if name not in members:
             raise SampleDecodeError(f"{key}: missing member {key}.{name}")
         try:
-            return MEMBERS[name if name in MEMBERS else next(n for n, m in MEMBERS.items() if m.matches(name))].read(
-                members[name], f"{key}.{name}")
+            return member_of(name).read(members[name], f"{key}.{name}")
         except SampleDecodeError:
             raise
         except ValueError as exc:

@@ -101,9 +101,12 @@ def find_segments(data_dir: str | Path, split: str, part: str = "all", val_share
             for i in infos]
     segs = [s for s in segs if s.hi > s.lo]
     drop = sorted(int(k.rsplit("-", 1)[1]) for k in exclude if k.startswith(f"{split}-"))
-    for i in drop:  # split the segment holding sample i around it
-        segs = [part for s in segs for part in ((dataclasses.replace(s, hi=i), dataclasses.replace(s, lo=i + 1))
-                                                if s.lo <= i < s.hi else (s,)) if part.hi > part.lo]
+    if drop:  # each segment cut around the left-out indices inside it
+        kept = []
+        for s in segs:
+            bounds = [s.lo] + [b for i in drop if s.lo <= i < s.hi for b in (i, i + 1)] + [s.hi]
+            kept += [dataclasses.replace(s, lo=a, hi=b) for a, b in zip(bounds[::2], bounds[1::2]) if b > a]
+        segs = kept
     if not segs:
         raise FileNotFoundError(f"{data_dir}: the {split} split has no {part} samples (val_share {val_share})")
     return segs
