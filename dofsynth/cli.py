@@ -173,12 +173,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # the parser imports every command (numpy, OpenCV): Ctrl-C and SIGTERM wait until it is
         # built, then stop the run here, never inside the import machinery's callbacks
-        held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM}) if main_thread else None
+        # (the entry point, dofsynth.__main__, holds them from its first line already)
+        stops = {signal.SIGINT, signal.SIGTERM}
+        if main_thread:
+            signal.pthread_sigmask(signal.SIG_BLOCK, stops)
         try:
             parser = build_parser()
         finally:
-            if held is not None:
-                signal.pthread_sigmask(signal.SIG_SETMASK, held)
+            if main_thread:  # a signal held since the entry's imports is raised here
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, stops)
         args = parser.parse_args(argv)
         if not getattr(args, "func", None):
             parser.print_help()
