@@ -11,12 +11,11 @@ from __future__ import annotations
 import struct
 import zlib
 
-import cv2
 import numpy as np
 
 from dofsynth.color import linear_to_srgb8
 from dofsynth.image import to_uint8
-from dofsynth.io import DEPTH_CHANNELS, decode_exr, encode_exr, encode_png_bgr, swap_rb
+from dofsynth.io import DEPTH_CHANNELS, PngSettings, decode_exr, encode_exr, encode_png_rgb
 from dofsynth.optics.coc import coc_radius
 
 SCHEMA_VERSION = 4  # 2: assets' colour; objects' anchored, visible and rejected;
@@ -30,12 +29,10 @@ SCHEMA_VERSION = 4  # 2: assets' colour; objects' anchored, visible and rejected
 #   Huffman coding alone is within 1.5% of the size of the old adaptive/Z_RLE setting at 0.6x
 #   its time.
 # - cover (mostly flat alpha): level 1, fixed Up filter, Z_RLE: the same size as before, 3x faster.
-# The bytes depend on these settings: changing them changes every shard.
-PNG_COMPRESSION = 1
-PNG_PARAMS = (cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION, cv2.IMWRITE_PNG_STRATEGY,
-              cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_PAETH)
-COVER_PNG_PARAMS = (cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION, cv2.IMWRITE_PNG_STRATEGY,
-                    cv2.IMWRITE_PNG_STRATEGY_RLE, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP)
+# The bytes depend on these settings: changing them changes every shard. Either encoder
+# (dofsynth.io.png_backend) writes the same bytes.
+PNG_SETTINGS = PngSettings(level=1, strategy="huffman", filter="paeth")
+COVER_PNG_SETTINGS = PngSettings(level=1, strategy="rle", filter="up")
 
 DEPTH_CHANNEL = DEPTH_CHANNELS[0]  # "disparity"; readers accept "Z" too (schema < 3 and other tools)
 DEPTH_ATTRIBUTES = {  # header attributes of depth.exr: what a reader needs, independent of focus
@@ -92,24 +89,24 @@ def decode_depth(data: bytes, name: str = "<depth.exr>") -> np.ndarray:
 
 
 def encode_png8(img: np.ndarray) -> bytes:
-    """(H, W, 3) values in [0, 1] (or uint8) -> 8-bit RGB PNG bytes with PNG_PARAMS."""
+    """(H, W, 3) values in [0, 1] (or uint8) -> 8-bit RGB PNG bytes with PNG_SETTINGS."""
     arr = np.asarray(img)
     if arr.dtype != np.uint8:
         arr = to_uint8(arr)
     if arr.ndim != 3 or arr.shape[2] != 3:
         raise ValueError(f"PNG member must be (H, W, 3), got shape {arr.shape}")
-    return with_srgb_chunk(encode_png_bgr(swap_rb(arr), PNG_PARAMS))
+    return with_srgb_chunk(encode_png_rgb(arr, PNG_SETTINGS))
 
 
 def encode_srgb_png_rows(rows, h: int, w: int) -> bytes:
     """Linear RGB -> clip [0, 1] -> 8-bit sRGB (`linear_to_srgb8`, exact) -> PNG bytes, of an
     (h, w, 3) linear image given block by block by `rows(r0, r1)`: the sRGB codes go straight
     into the BGR buffer the encoder takes, so no frame-sized float temporaries."""
-    bgr = np.empty((h, w, 3), np.uint8)
+    rgb = np.empty((h, w, 3), np.uint8)
     for r0 in range(0, h, _ROWS):
         r1 = min(r0 + _ROWS, h)
-        bgr[r0:r1] = swap_rb(linear_to_srgb8(rows(r0, r1)))
-    return with_srgb_chunk(encode_png_bgr(bgr, PNG_PARAMS))
+        rgb[r0:r1] = linear_to_srgb8(rows(r0, r1))
+    return with_srgb_chunk(encode_png_rgb(rgb, PNG_SETTINGS))
 
 
 _ROWS = 64  # rows per block of the sRGB encode
@@ -123,14 +120,14 @@ def encode_srgb_png_planar(linear: np.ndarray) -> bytes:
     if linear.ndim != 3 or linear.shape[0] != 3:
         raise ValueError(f"planar PNG member must be (3, H, W), got shape {linear.shape}")
     _, h, w = linear.shape
-    bgr = np.empty((h, w, 3), np.uint8)
+    rgb = np.empty((h, w, 3), np.uint8)
     codes = np.empty((min(_ROWS, h), w), np.uint8)
     for r0 in range(0, h, _ROWS):
         r1 = min(r0 + _ROWS, h)
         for ch in range(3):
             linear_to_srgb8(linear[ch, r0:r1], out=codes[: r1 - r0])
-            bgr[r0:r1, :, 2 - ch] = codes[: r1 - r0]
-    return with_srgb_chunk(encode_png_bgr(bgr, PNG_PARAMS))
+            rgb[r0:r1, :, ch] = codes[: r1 - r0]
+    return with_srgb_chunk(encode_png_rgb(rgb, PNG_SETTINGS))
 
 
 def encode_alphas(front: np.ndarray, middle: np.ndarray) -> bytes:
@@ -138,8 +135,8 @@ def encode_alphas(front: np.ndarray, middle: np.ndarray) -> bytes:
     front, middle = np.asarray(front), np.asarray(middle)
     if front.ndim != 2 or front.shape != middle.shape:
         raise ValueError(f"cover alphas must be two (H, W) maps, got shapes {front.shape}, {middle.shape}")
-    bgr = np.zeros(front.shape + (3,), np.uint8)
+    rgb = np.zeros(front.shape + (3,), np.uint8)
     for r in range(0, front.shape[0], 128):  # row blocks: small, cache-resident temporaries
-        bgr[r:r + 128, :, 2] = to_uint8(front[r:r + 128])
-        bgr[r:r + 128, :, 1] = to_uint8(middle[r:r + 128])
-    return encode_png_bgr(bgr, COVER_PNG_PARAMS)
+        rgb[r:r + 128, :, 0] = to_uint8(front[r:r + 128])
+        rgb[r:r + 128, :, 1] = to_uint8(middle[r:r + 128])
+    return encode_png_rgb(rgb, COVER_PNG_SETTINGS)

@@ -93,3 +93,32 @@ def test_real_photo_and_matte_decode(shared_assets: Path):
     matte = dio.read_image(shared_assets / "alpha" / "rembg_girl-1.png")
     assert rgb.shape == (399, 600, 3) and alpha is None
     assert matte.shape == (399, 600, 1) and 0.0 <= matte.min() and matte.max() <= 1.0
+
+
+def test_both_png_encoders_write_the_same_member_bytes(shared_assets, monkeypatch):
+    """The PNG members (images, cover) come out byte for byte the same from imagecodecs and from
+    OpenCV, the fallback, on real photos and mattes: shards do not depend on which is installed."""
+    from dofsynth.codecs import encode_alphas, encode_srgb_png_planar
+
+    photos = sorted(p for p in shared_assets.rglob("*") if p.suffix.lower() in (".jpg", ".png"))[:6]
+    assert len(photos) >= 4
+    for path in photos:
+        img = dio.read_image(path)
+        rgb = img[:, :, :3] if img.shape[2] >= 3 else np.repeat(img[:, :, :1], 3, axis=2)
+        linear = np.ascontiguousarray(srgb_to_linear(rgb).transpose(2, 0, 1))
+        alpha = img[:, :, -1] if img.shape[2] in (2, 4) else img[:, :, 0]
+        got = {}
+        for backend in ("cv2", "imagecodecs"):
+            monkeypatch.setenv("DOFSYNTH_PNG", backend)
+            assert dio.png_backend() == backend
+            got[backend] = (encode_srgb_png_planar(linear), encode_alphas(alpha, alpha[::-1].copy()))
+        assert got["cv2"] == got["imagecodecs"], path.name
+        back = dio.decode_image(got["cv2"][0], raw=True)
+        assert back.shape == img.shape[:2] + (3,)
+    monkeypatch.delenv("DOFSYNTH_PNG")
+    monkeypatch.setitem(__import__("sys").modules, "imagecodecs", None)  # not installed: OpenCV
+    assert dio.png_backend() == "cv2"
+    assert (encode_srgb_png_planar(linear), encode_alphas(alpha, alpha[::-1].copy())) == got["imagecodecs"]
+    monkeypatch.setenv("DOFSYNTH_PNG", "zlib")
+    with pytest.raises(ValueError, match="DOFSYNTH_PNG"):
+        dio.png_backend()
