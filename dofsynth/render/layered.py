@@ -183,8 +183,15 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         passes = [(conv, wsub)]
         if slope is not None:  # the Jacobian's first-order term: the p-moment kernel times the slope
             mk = kernel_moments(aperture, float(ck))[1 - along]
-            if float(np.abs(mk).max()) > 1e-6:  # not a disc's identity level (its centroid is 0)
-                passes.append((Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=mk), wsub * slope[sub]))
+            g = slope[sub]
+            if float(np.abs(mk).max()) <= 1e-6:  # a disc's identity level (its centroid is 0)
+                pass
+            elif float(g.max() - g.min()) <= 1e-6 * max(float(np.abs(g).max()), 1e-6):
+                # a linear ramp: one slope over the strip, so one pass with the kernel K + g M
+                merged = conv.k + np.float32(g.flat[0]) * mk
+                passes = [(Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=merged), wsub)]
+            else:
+                passes.append((Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=mk), wsub * g))
         for cv, wk in passes:  # weight, alpha and colour of each pass
             if along == 0:
                 add_clipped(w_acc, ty0, 0, np.convolve(wk[:, 0], cv.k.sum(axis=1))[:, None])
