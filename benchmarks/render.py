@@ -208,25 +208,28 @@ def method_scenes(n: int = 64) -> dict:
                                             Plane(colour([0.2, 0.3, 0.9]), disc(n * 0.5, n * 0.6, n * 0.25), 1.0)]}
 
 
-def method_table(cocs=(10.0, 20.0), focuses=(0.0, 0.5, 1.0), cells=(2, 3, 4)) -> None:
+def method_table(cocs=(10.0, 20.0), focuses=(0.0, 0.5, 1.0), cells=(2, 3, 4), n: int = 64, cat_eye: float = 0.0) -> None:
     """PSNR (dB) of the layered and sub-aperture modes against the exact mode, and their time
-    as a multiple of the layered method's, side by side, on `method_scenes`."""
+    as a multiple of the layered method's, side by side, on `method_scenes(n)`; with `cat_eye`
+    the sub-aperture and exact modes vignette with that strength (the layered column is then
+    its unvignetted render, for scale)."""
     def psnr(a, b):
         return 10 * np.log10(1.0 / max(float(np.mean((a - b) ** 2)), 1e-20))
 
     head = " | ".join(["layered"] + [f"{c}x{c} cells (time)" for c in cells])
     print(f"| scene | max CoC | focus | {head} | exact time |\n|" + "---|" * (5 + len(cells)))
-    for name, planes in method_scenes().items():
+    eye = {"cat_eye": cat_eye} if cat_eye else {}
+    for name, planes in method_scenes(n).items():
         for coc in cocs:
             for focus in focuses:
                 t0 = time.perf_counter()
-                exact = render_planes(planes, focus, coc, Disk(), method="exact")
+                exact = render_planes(planes, focus, coc, Disk(), method="exact", **eye)
                 te = time.perf_counter() - t0
                 tl, _ = timed(lambda i: render_planes(planes, focus, coc, Disk()), 7)
                 row = [f"{psnr(render_planes(planes, focus, coc, Disk()), exact):.1f}"]
                 for c in cells:
-                    ts, _ = timed(lambda i: render_planes(planes, focus, coc, Disk(), method="subaperture", cells=c), 7)
-                    sub = render_planes(planes, focus, coc, Disk(), method="subaperture", cells=c)
+                    ts, _ = timed(lambda i: render_planes(planes, focus, coc, Disk(), method="subaperture", cells=c, **eye), 7)
+                    sub = render_planes(planes, focus, coc, Disk(), method="subaperture", cells=c, **eye)
                     row.append(f"{psnr(sub, exact):.1f} ({ts / tl:.1f}x)")
                 print(f"| {name} | {coc:g} | {focus:g} | " + " | ".join(row) + f" | {te / tl:.0f}x |", flush=True)
 
@@ -241,6 +244,11 @@ def main() -> None:
     ap.add_argument("--levels", action="store_true", help="the level-spacing error table instead")
     ap.add_argument("--methods", action="store_true",
                     help="layered and sub-aperture against the exact mode (PSNR, time) on small scenes instead")
+    ap.add_argument("--cat-eye", type=float, default=0.0, help="with --methods: vignetting strength (0..1)")
+    ap.add_argument("--method-size", type=int, default=64, help="with --methods: the scenes' size in px")
+    ap.add_argument("--cocs", type=float, nargs="+", default=[10.0, 20.0], help="with --methods: max CoC values")
+    ap.add_argument("--focuses", type=float, nargs="+", default=[0.0, 0.5, 1.0], help="with --methods: focus values")
+    ap.add_argument("--cells", type=int, nargs="+", default=[2, 3, 4], help="with --methods: cells per side")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     if args.levels:
@@ -248,7 +256,7 @@ def main() -> None:
         return
     if args.methods:
         with scipy.fft.set_workers(1):
-            method_table()
+            method_table(tuple(args.cocs), tuple(args.focuses), tuple(args.cells), args.method_size, args.cat_eye)
         return
     if args.generation:
         with scipy.fft.set_workers(1):

@@ -598,6 +598,62 @@ def test_cat_eye_subaperture_renders_approach_the_exact_mode_with_the_same_vigne
     assert np.allclose(in_focus, planes[0].rgb, atol=1e-6)   # normalized: what is in focus is untouched
 
 
+def _point_disc(n, at, strength, method, c=12.0, **kw):
+    """The render of one white pixel at `at` on black, CoC c px (the plane behind focus), and
+    the unit-light image of that pixel."""
+    img = np.zeros((n, n, 3), np.float32)
+    img[at] = 1.0
+    return render_planes([Plane(img, np.ones((n, n), np.float32), 0.0)], 1.0, c, Disk(), method=method,
+                         cat_eye=strength, **kw)[:, :, 0]
+
+
+def _lens_area(r: float, d: float) -> float:
+    """Area of the intersection of two discs of radius r whose centres are d apart."""
+    return 2 * r * r * np.arccos(d / (2 * r)) - d / 2 * np.sqrt(4 * r * r - d * d)
+
+
+@pytest.mark.parametrize("method,kw", [("exact", {}), ("subaperture", {"cells": 3})])
+def test_a_centred_bokeh_disc_loses_nothing_to_vignetting(method, kw):
+    """Vignetting depends on where a ray comes from in the frame (a thin lens with a stop in
+    front of it: the clip circle moves with the source point's field position), so the disc of
+    a point at the frame's centre is whole at any strength: its support and light are those of
+    the unvignetted disc (hand-computed: pi r^2 pixels at 1 / (pi r^2) each)."""
+    n, c = 97, 12.0
+    plain = _point_disc(n, (48, 48), 0.0, method, c, **kw)
+    strong = _point_disc(n, (48, 48), 1.0, method, c, **kw)
+    level = 1.0 / (np.pi * c * c)
+    lit, lit_plain = strong > 0.25 * level, plain > 0.25 * level
+    assert np.count_nonzero(lit != lit_plain) <= 0.01 * np.count_nonzero(lit_plain)
+    assert np.abs(strong - plain).max() < 0.25 * level
+    yy, xx = np.mgrid[0:n, 0:n]
+    r = np.hypot(yy - 48, xx - 48)
+    assert abs(float(strong.sum()) - 1.0) < 5e-3
+    assert abs(float(strong[r < c - 1.5].mean()) * np.pi * c * c - 1.0) < 0.03
+    assert float(strong[r > c + 1.5].max()) < 1e-6
+
+
+def test_an_off_centre_bokeh_disc_is_the_hand_computed_cats_eye():
+    """A point off centre, strength s: its light spreads over the lens where its disc
+    |x - u| <= r meets the clip circle |x - u - c o(u)| <= r, o(u) = s (u - centre) / half
+    diagonal (docs/rendering.md); all of its light, evenly (1 / that lens's area)."""
+    n, c, s = 97, 12.0, 1.0
+    u = np.array([20.0, 70.0])
+    img = _point_disc(n, (20, 70), s, "exact", c)
+    half = 0.5 * np.hypot(n - 1, n - 1)
+    o = s * (u - 48.0) / half
+    clip = u + (-c) * o  # the CoC is signed: this plane lies behind focus (c < 0)
+    yy, xx = np.mgrid[0:n, 0:n]
+    d_disc = np.hypot(yy - u[0], xx - u[1])
+    d_clip = np.hypot(yy - clip[0], xx - clip[1])
+    inside = (d_disc < c - 1.5) & (d_clip < c - 1.5)
+    outside = (d_disc > c + 1.5) | (d_clip > c + 1.5)
+    area = _lens_area(c, c * float(np.hypot(*o)))
+    assert abs(float(img.sum()) - 1.0) < 0.01
+    assert abs(float(img[inside].mean()) * area - 1.0) < 0.03, (float(img[inside].mean()) * area)
+    assert float(img[outside].max()) < 1e-6
+    assert area < 0.8 * np.pi * c * c  # a real cat's eye, not the whole disc
+
+
 @pytest.mark.parametrize("ap", [Disk(), Polygon(5, 10.0)])
 def test_a_slanted_plane_matches_the_thin_lens_gather(ap):
     """A ramp alone has no occlusion: the layered method (scatter with the Jacobian weight of

@@ -41,22 +41,33 @@ def aperture_samples(aperture: Aperture, max_abs_coc: float, samples: int | None
     return px.astype(np.float32), py.astype(np.float32), wt
 
 
-def _warp(pm, cmap, px, py, gx, gy):
-    """Sample the (H, W, 4) premultiplied plane where sensor pixels see it for aperture point p
-    (edge-replicated beyond the frame, as in the layered renderer)."""
-    if np.ndim(cmap) == 0:
-        mx, my = gx - px * cmap, gy - py * cmap
-    else:
-        mx, my = gx - px * cmap, gy - py * cmap  # start: c at the sensor point
+def _source(cmap, px, py, gx, gy):
+    """Where sensor pixels (gx, gy) see a plane of CoC `cmap` (px; a number or a map) through
+    aperture point p: x' with x = x' + p c(x') (for a map by fixed-point iteration)."""
+    mx, my = gx - px * cmap, gy - py * cmap  # a map: start from c at the sensor point
+    if np.ndim(cmap) != 0:
         for _ in range(FIXED_POINT_ITERATIONS):
             c = cv2.remap(cmap, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             mx, my = gx - px * c, gy - py * c
+    return mx, my
+
+
+def _warp(pm, mx, my):
+    """The (H, W, C) plane sampled at source positions (mx, my), edge-replicated beyond the
+    frame, as in the layered renderer."""
     return cv2.remap(pm, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, options) -> np.ndarray:
     """Aperture-sampled render of validated planes; linear RGB (3, H, W) float32. `options`: a
-    dofsynth.render.RenderOptions (its `samples`: aperture points, None = 0.5 px steps).
+    dofsynth.render.RenderOptions (its `samples`: aperture points, None = 0.5 px steps; its
+    `cat_eye`: the vignetting strength).
+
+    Cat-eye: a plane's light through aperture point p counts only where p lies inside the clip
+    circle of the plane point it comes from (`cat_eye_offset` at that source position, clamped
+    to the frame as the planes are replicated beyond it), divided by the share of the aperture
+    inside that circle: each source point keeps its light (what is in focus is untouched) and
+    spreads it over its clipped disc; occlusion (1 - alpha) is not clipped.
 
     Slow: cost grows with the number of aperture points (about pi * (2 * max|c|)^2 for a disk
     by default). Meant as the reference for the fast per-plane renderer and for small images.
@@ -73,22 +84,24 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, optio
         cmax = max(cmax, float(np.max(np.abs(c))))
         prepared.append((np.ascontiguousarray(pm), c))
     px, py, wt = aperture_samples(aperture, cmax, options.samples)
-    acc = np.zeros((H, W, 4), np.float64)
-    vignette = options.cat_eye
-    if vignette:  # each aperture point counts only where it lies inside the offset circle
-        oy, ox = cat_eye_offset((H, W), vignette)
-        norm = np.zeros((H, W, 1), np.float64)
+    strength = options.cat_eye
+    if strength:  # the share of the aperture inside each frame position's clip circle (a map)
+        oy, ox = cat_eye_offset((H, W), strength)
+        area = np.zeros((H, W), np.float32)
+        for x, y, w in zip(px, py, wt):
+            area += np.float32(w) * ((y - oy) ** 2 + (x - ox) ** 2 <= 1.0)
+    acc = np.zeros((H, W, 3), np.float64)
     for x, y, w in zip(px, py, wt):
-        comp = np.zeros((H, W, 4), np.float32)
+        comp = np.zeros((H, W, 3), np.float32)
         for pm, c in prepared:
-            warped = _warp(pm, c, x, y, gx, gy)
-            comp = warped + (1.0 - warped[:, :, 3:4]) * comp
-        if vignette:
-            m = (((y - oy) ** 2 + (x - ox) ** 2) <= 1.0)[:, :, None] * w
-            acc += m * comp
-            norm += m
-        else:
-            acc += w * comp
-    if vignette:
-        acc /= np.maximum(norm, 1e-12)
-    return np.ascontiguousarray(acc[:, :, :3].transpose(2, 0, 1), dtype=np.float32)
+            mx, my = _source(c, x, y, gx, gy)
+            warped = _warp(pm, mx, my)
+            colour, a = warped[:, :, :3], warped[:, :, 3:4]
+            if strength:  # the light counts where p lies in the clip circle of its source point
+                sx, sy = np.clip(mx, 0, W - 1), np.clip(my, 0, H - 1)  # (replicated beyond the frame)
+                oy, ox = cat_eye_offset((H, W), strength, sy, sx)
+                inside = (y - oy) ** 2 + (x - ox) ** 2 <= 1.0
+                colour = colour * (inside / np.maximum(_warp(area, sx, sy), 1e-12)).astype(np.float32)[:, :, None]
+            comp = colour + (1.0 - a) * comp
+        acc += w * comp
+    return np.ascontiguousarray(acc.transpose(2, 0, 1), dtype=np.float32)

@@ -94,17 +94,25 @@ CAT_EYE_GRID = 9      # frame positions per side where the cells' weights are me
 CAT_EYE_POINTS = 24   # sample points per side of a cell for its share inside the vignetting circle
 
 
-def cat_eye_weights(cell: Cell, shape: tuple[int, int], strength: float) -> np.ndarray:
-    """(H, W) float32: the share of the aperture's area that lies in `cell` and inside the
-    vignetting circle (radius 1 about cat_eye_offset), measured by points on a grid of
-    CAT_EYE_GRID x CAT_EYE_GRID frame positions and interpolated bilinearly (smooth)."""
-    h, w = shape
-    return cv2.resize(_cat_eye_grid(cell, (int(h), int(w)), float(strength)), (w, h), interpolation=cv2.INTER_LINEAR)
+def cat_eye_shares(parts, shape: tuple[int, int], strength: float) -> list[np.ndarray]:
+    """For each cell of `parts` ((cell, w) pairs covering the aperture), an (H, W) float32 map:
+    the share of a source point's light that passes through that cell, for a source at each
+    frame position: the cell's part of the aperture inside the vignetting circle (radius 1 about
+    `cat_eye_offset` at the source's position) over all of the aperture inside it. The shares
+    add up to 1 at every position. Measured by points on a CAT_EYE_GRID x CAT_EYE_GRID grid of
+    frame positions and interpolated bilinearly (smooth)."""
+    h, w = (int(v) for v in shape)
+    # each cell's measured share relative to its unclipped one (the same points), times its
+    # area share: exactly the cells' weights where the circle leaves the aperture whole
+    coarse = [wk * _cat_eye_grid(cell, (h, w), float(strength)) / max(_cat_eye_grid(cell, (h, w), 0.0)[0, 0], 1e-12)
+              for cell, wk in parts]
+    total = np.maximum(np.sum(coarse, axis=0), 1e-12)
+    return [cv2.resize(c / total, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float32) for c in coarse]
 
 
 @lru_cache(maxsize=256)
 def _cat_eye_grid(cell: Cell, shape: tuple[int, int], strength: float) -> np.ndarray:
-    """The CAT_EYE_GRID x CAT_EYE_GRID measured shares of `cat_eye_weights` (read-only)."""
+    """The CAT_EYE_GRID x CAT_EYE_GRID measured shares of the aperture in `cell` and the circle (read-only; `cat_eye_shares`)."""
     h, w = shape
     t = (np.arange(CAT_EYE_POINTS) + 0.5) / CAT_EYE_POINTS
     px = cell.x0 + (cell.x1 - cell.x0) * t
@@ -265,20 +273,26 @@ def render_subaperture(planes, focus: float, max_coc: float, aperture: Aperture,
     `options`: a dofsynth.render.RenderOptions (its `cells`: n for an n x n grid; `cat_eye`:
     the vignetting strength; the layered method's level_step and level_ratio per cell).
 
-    With cat_eye > 0 each cell's weight varies over the frame (cat_eye_weights) and the sum is
-    normalized by the weights, so what is in focus keeps its brightness."""
+    With cat_eye > 0 each plane's colour goes through cell k with the share `cat_eye_shares`
+    gives its source position (the same map for every plane: a plane's pixels are its source
+    points), and the cells' images are added: each source point keeps its light, spread over
+    the part of the aperture its clip circle leaves (as the exact method does it)."""
     n = options.cells
     if n == 1 and not options.cat_eye:
         return render_layered(planes, focus, max_coc, aperture, options)
-    acc = norm = None
-    for cell, w in cells(aperture, n):
-        img = render_cell(planes, focus, max_coc, cell, options)
-        wk = np.float32(w) if not options.cat_eye else cat_eye_weights(cell, img.shape[1:], options.cat_eye)
-        if acc is None:
-            acc, norm = img * wk, wk
+    parts = cells(aperture, n)
+    shares = cat_eye_shares(parts, planes[0].shape, options.cat_eye) if options.cat_eye else None
+    acc = None
+    for k, (cell, w) in enumerate(parts):
+        if shares is None:
+            img = render_cell(planes, focus, max_coc, cell, options)
+            img *= np.float32(w)
         else:
-            acc += wk * img
-            norm = norm + wk
-    if options.cat_eye:
-        acc /= np.maximum(norm, 1e-12)
+            seen = [Plane(np.asarray(p.rgb, np.float32) * shares[k][:, :, None], p.alpha, p.disparity, p.box)
+                    for p in planes]
+            img = render_cell(seen, focus, max_coc, cell, options)
+        if acc is None:
+            acc = img
+        else:
+            acc += img
     return acc
