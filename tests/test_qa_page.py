@@ -69,8 +69,12 @@ def test_the_page_loads_without_console_errors_and_its_thumbnails_load(browser, 
     assert len(rows) == 5   # 3 train + 2 test (the smoke set has 2)
     first = rows[0].find_elements("css selector", "img")
     browser.execute_script("window.scrollTo(0, document.body.scrollHeight)")   # lazy thumbnails load
-    for img in first:
-        assert _js(browser, "return arguments[0].complete && arguments[0].naturalHeight", img) == 64
+    for img in first:  # lazy images load after the scroll, asynchronously: wait (generously) for each
+        loaded = lambda: _js(browser, "return arguments[0].complete && arguments[0].naturalHeight", img)  # noqa: E731
+        deadline = time.monotonic() + 60
+        while loaded() != 64 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert loaded() == 64
         assert img.get_attribute("src").endswith(".t.jpg")
     assert "5 of 5 shown" in browser.find_element("id", "count").text
 
