@@ -58,6 +58,25 @@ def test_cut_sides_are_found_where_the_matte_is_opaque_at_the_border():
     assert cut_sides(a) == ()
 
 
+def test_a_matte_whose_soft_part_runs_off_its_photo_is_cut_there():
+    """Hair strands that end on the photo's bottom row and a faint veil (alpha 0.13) along its
+    top edge continue past the photo: cut there like an opaque matte; matting noise of a few
+    codes along a border is not a cut."""
+    a = np.zeros((80, 80))
+    a[20:50, 20:60] = 1.0
+    for x in (24, 31, 37, 44, 52):  # thin strands of hair from the body down to the bottom row
+        a[50:, x] = np.linspace(0.6, 0.08, 30)
+    assert cut_sides(a) == ("bottom",)
+    veil = np.zeros((80, 80))
+    veil[30:60, 20:60] = 1.0
+    veil[:30, 10:70] = 0.13
+    assert cut_sides(veil) == ("top",)
+    noisy = np.zeros((80, 80))
+    noisy[30:50, 30:50] = 1.0
+    noisy[0], noisy[:, -1] = 2 / 255, 3 / 255  # below the tolerance: no cut
+    assert cut_sides(noisy) == ()
+
+
 def test_real_mattes_cut_at_the_chest_or_legs_are_found(shared_assets, write_recipe):
     recipe = load_recipe(write_recipe(backgrounds=shared_assets / "bg", foregrounds=shared_assets, size=96))
     lib = build_library(recipe)

@@ -134,18 +134,19 @@ def alpha_bbox(alpha: np.ndarray, path: str) -> tuple[int, int, int, int]:
 
 
 THUMB = 64          # long side of an alpha thumbnail, px
-CUT_SHARE = 0.01    # a side is cut when at least this share of it (and CUT_MIN px) is opaque
-CUT_MIN = 4
+CUT_ALPHA = 4 / 255  # a matte at least this opaque on a border of its photo goes on past it...
+CUT_MIN = 4          # ...where that holds for at least this many pixels of the border line
 SIDES = ("top", "bottom", "left", "right")
 
 
 def cut_sides(alpha: np.ndarray) -> tuple[str, ...]:
-    """The sides of the photo at which its matte is cut: where at least CUT_SHARE of the border
-    line (and CUT_MIN pixels) is opaque (alpha >= 0.5), like a portrait cut at the chest or an
-    animal at its legs. Such an object must touch the frame's edge there, never float."""
-    opaque = np.asarray(alpha) >= 0.5
-    lines = {"top": opaque[0], "bottom": opaque[-1], "left": opaque[:, 0], "right": opaque[:, -1]}
-    return tuple(k for k in SIDES if int(lines[k].sum()) >= max(CUT_MIN, CUT_SHARE * lines[k].size))
+    """The sides of the photo at which its matte is cut: where the matte is non-zero on its
+    border line (alpha >= CUT_ALPHA, above matting noise of a few codes, on CUT_MIN pixels or
+    more), opaque like a portrait cut at the chest or soft like hair strands or a veil that run
+    off the photo. Such an object must touch the frame's edge there, never float."""
+    on = np.asarray(alpha) >= CUT_ALPHA
+    lines = {"top": on[0], "bottom": on[-1], "left": on[:, 0], "right": on[:, -1]}
+    return tuple(k for k in SIDES if int(lines[k].sum()) >= CUT_MIN)
 
 
 def area_thumb(alpha: np.ndarray, bbox: tuple[int, int, int, int]) -> np.ndarray:
