@@ -53,6 +53,7 @@ class AssetSources:
     fg_dir: str = key("fg")                          # the paired layout: photos in foregrounds/<fg_dir> ...
     alpha_dir: str = key("alpha")                    # ... their mattes in foregrounds/<alpha_dir>
     estimate_foreground: bool = key(True)            # paired layout: estimate the colour where 0 < alpha < 1
+    estimate_space: str = key("srgb", choices=("srgb", "linear"))  # ... solving I = a F + (1 - a) B in sRGB codes or linear light
     max_upscale: float = key(1.0, lo=1.0, hi=64.0)   # most magnification of a background crop or a cutout
     transparent_background: str = key("bad", choices=("bad", "black", "grey", "white"))  # or flatten onto
 

@@ -105,7 +105,9 @@ class AssetLibrary:
     def colour(self, asset: Asset) -> str:
         """Where the loaders' colour of `asset` comes from, as its sample records say: "file",
         or "estimated:<estimator>-<version>" (a photo + matte pair with estimate_foreground)."""
-        return f"estimated:{estimator_id()}" if asset.alpha_path and self.rules.estimate_foreground else "file"
+        if asset.alpha_path and self.rules.estimate_foreground:
+            return f"estimated:{estimator_id(self.rules.estimate_space)}"
+        return "file"
 
     def __getitem__(self, asset_id: str) -> Asset:
         try:
@@ -218,9 +220,9 @@ class AssetLibrary:
                 rgb = np.array(rgb, dtype=np.float32)
                 rgb[y:y + h, x:x + w] = estimate(np.ascontiguousarray(rgb[y:y + h, x:x + w]),
                                                  np.ascontiguousarray(alpha[y:y + h, x:x + w]),
-                                                 asset.sha256, asset.alpha_sha256)
+                                                 asset.sha256, asset.alpha_sha256, self.rules.estimate_space)
             else:
-                rgb = estimate(rgb, alpha, asset.sha256, asset.alpha_sha256)
+                rgb = estimate(rgb, alpha, asset.sha256, asset.alpha_sha256, self.rules.estimate_space)
         return np.ascontiguousarray(rgb, dtype=np.float32), np.ascontiguousarray(alpha, dtype=np.float32)
 
 
