@@ -236,12 +236,20 @@ def _failed(name: str, again: str, exc: BaseException) -> int:
 
 
 def _stopped(name: str, again: str, stop: BaseException) -> int:
-    """The one line and the status of a run stopped by Ctrl-C (130) or SIGTERM (143)."""
+    """The one line and the status of a run stopped by Ctrl-C (130) or SIGTERM (143). A stop
+    that interrupted a library's own clean-up (a `with` block's close) can leave an object
+    whose finalizer then fails when it is collected, at exit: such "Exception ignored"
+    tracebacks are consequences of the stop, so they are silenced for the rest of the run."""
+    sys.unraisablehook = _after_stop
     if isinstance(stop, Terminated):
         print(f"{name}: terminated (SIGTERM){again}", file=sys.stderr)
         return 143
     print(f"{name}: interrupted{again}", file=sys.stderr)
     return 130
+
+
+def _after_stop(unraisable) -> None:
+    """sys.unraisablehook once a run was stopped: finalizer errors are not reported."""
 
 
 if __name__ == "__main__":

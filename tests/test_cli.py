@@ -150,3 +150,33 @@ def test_an_existing_destination_is_bad_input_everywhere(tmp_path, capsys):
     assert main(["recipes", "copy", "smoke", str(tmp_path)]) == 0
     assert main(["recipes", "copy", "smoke", str(tmp_path)]) == 2
     assert "exists" in capsys.readouterr().err
+
+
+def test_a_stopped_run_prints_its_one_line_and_no_finalizer_tracebacks_after_it():
+    """A signal that lands in a library's clean-up (a `with` block's close) can leave an object
+    whose __del__ then fails at exit: the stopped run still ends in one line."""
+    code = """if True:
+        import signal, sys
+        from dofsynth import cli
+        class Half:
+            def __del__(self):
+                raise ValueError("I/O operation on closed file")
+        def run(args):
+            left = Half()
+            left.cycle = left   # garbage only the collector finds, after main has printed its line
+            del left
+            signal.raise_signal(signal.SIGTERM)
+        parser = cli.build_parser
+        def build():
+            p = parser()
+            p._subparsers._group_actions[0].choices["stats"].set_defaults(func=run)
+            return p
+        cli.build_parser = build
+        status = cli.main(["stats", "nowhere"])
+        import gc
+        gc.collect()
+        raise SystemExit(status)
+    """
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert res.returncode == 143 and len(lines) == 1 and "terminated" in lines[0], res.stderr
