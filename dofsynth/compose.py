@@ -14,9 +14,11 @@ depth sensor or a matting-free annotation would report.
 """
 from __future__ import annotations
 
+import math
 import mmap
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from dofsynth.assets import Asset, AssetLibrary
@@ -33,6 +35,13 @@ class SceneLayers:
     planes: list[Plane]        # back to front: background (opaque, disparity map), middle, front
     disparity: np.ndarray      # (H, W) float32: front-most plane with alpha >= 0.5
     boxes: list = field(default_factory=list)  # per cutout: (row slice, column slice) of alpha > 0, or None
+    canvas: list[Plane] | None = None  # the planes extended `margin` px past every frame edge, for the
+    margin: int = 0                    # blur (`planes` are views of their frame part); None: `planes`
+
+    @property
+    def blur_planes(self) -> list[Plane]:
+        """What the renderer takes: the canvas planes, or the frame's when there is no margin."""
+        return self.planes if self.canvas is None else self.canvas
 
     @property
     def aif(self) -> np.ndarray:
@@ -67,6 +76,60 @@ def background_image(rgb: np.ndarray, crop, flip: bool, h: int, w: int) -> np.nd
         part = part[:, ::-1]
     out = resize(part, w, h)  # always a new array
     return np.maximum(out, 0.0, out=out)
+
+
+def beyond_frame(rgb: np.ndarray, crop, flip: bool, h: int, w: int, m: int) -> np.ndarray:
+    """The background photo around its crop on a canvas of (h + 2m, w + 2m): the photo's own
+    pixels `m` output px past each frame edge, at the crop's scale, where it has them, its edge
+    replicated where it does not. The frame part is `background_image`'s (the caller pastes it
+    in: this one's resampling grid may be up to half a px off there)."""
+    x, y, cw, ch = (int(v) for v in crop)
+    ph, pw = rgb.shape[:2]
+    sx, sy = cw / w, ch / h
+    x0, x1 = max(0, math.floor(x - m * sx)), min(pw, math.ceil(x + cw + m * sx))
+    y0, y1 = max(0, math.floor(y - m * sy)), min(ph, math.ceil(y + ch + m * sy))
+    part = resize(rgb[y0:y1, x0:x1], max(1, round((x1 - x0) / sx)), max(1, round((y1 - y0) / sy)))
+    oy, ox = m + round((y0 - y) / sy), m + round((x0 - x) / sx)  # where the window lands on the canvas
+    H, W = h + 2 * m, w + 2 * m
+    ty0, tx0 = max(oy, 0), max(ox, 0)
+    ty1, tx1 = min(oy + part.shape[0], H), min(ox + part.shape[1], W)
+    inner = np.ascontiguousarray(part[ty0 - oy:ty1 - oy, tx0 - ox:tx1 - ox])
+    canvas = cv2.copyMakeBorder(inner, ty0, H - ty1, tx0, W - tx1, cv2.BORDER_REPLICATE)
+    canvas = np.ascontiguousarray(canvas[:, ::-1]) if flip else canvas
+    return np.maximum(canvas, 0.0, out=canvas)
+
+
+def extend_cut_sides(rgb: np.ndarray, alpha: np.ndarray, x0: int, y0: int, size: tuple[int, int], sides) -> None:
+    """In place: an object placed with its extent at (x0, y0), `size` (w, h), on a canvas,
+    continued past each cut side in `sides` (ObjectParams.anchored) to the canvas edge by
+    repeating its last row or column there: it is cut by its photo, not by the scene, and goes
+    on beyond the frame (as the renderer replicates a cutout that reaches the canvas's edge)."""
+    H, W = alpha.shape
+    x1, y1 = x0 + size[0], y0 + size[1]
+    cols = slice(max(x0, 0), min(x1, W))
+    r0, r1 = max(y0, 0), min(y1, H)
+    if "bottom" in sides and 0 < y1 < H:
+        rgb[y1:, cols], alpha[y1:, cols] = rgb[y1 - 1, cols], alpha[y1 - 1, cols]
+        r1 = H
+    if "top" in sides and 0 < y0 < H:
+        rgb[:y0, cols], alpha[:y0, cols] = rgb[y0, cols], alpha[y0, cols]
+        r0 = 0
+    if "right" in sides and 0 < x1 < W:
+        rgb[r0:r1, x1:], alpha[r0:r1, x1:] = rgb[r0:r1, x1 - 1:x1], alpha[r0:r1, x1 - 1:x1]
+    if "left" in sides and 0 < x0 < W:
+        rgb[r0:r1, :x0], alpha[r0:r1, :x0] = rgb[r0:r1, x0:x0 + 1], alpha[r0:r1, x0:x0 + 1]
+
+
+def ramp_beyond(bgp, h: int, w: int, m: int) -> np.ndarray:
+    """A ramp's disparity over the canvas (broadcast (h + 2m, w + 2m)): the frame's linear ramp
+    continued past its edges, clipped to [0, 1]."""
+    horizontal = bgp.direction == "horizontal"
+    n = w if horizontal else h
+    t = (np.arange(n + 2 * m, dtype=np.float64) - m) / max(n - 1, 1)
+    if not horizontal:
+        t = 1.0 - t  # b1 at the top row, b0 at the bottom one
+    line = np.clip(bgp.b0 + (bgp.b1 - bgp.b0) * t, 0.0, 1.0).astype(np.float32)
+    return np.broadcast_to(line[None, :] if horizontal else line[:, None], (h + 2 * m, w + 2 * m))
 
 
 def lazy_zeros(shape) -> np.ndarray:
@@ -134,7 +197,9 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> SceneLayers:
     (`SceneLayers.aif`, or `SceneLayers.aif_rows` block by block)."""
     h, w = scene.size
     bgp = scene.background
-    bg_rgb = background_image(library.load_background(_asset(library, scene, "background")), bgp.crop, bgp.flip, h, w)
+    m = int(bgp.margin)
+    photo = library.load_background(_asset(library, scene, "background"))
+    bg_rgb = background_image(photo, bgp.crop, bgp.flip, h, w)
     if bgp.mode == "flat":
         bg_plane_disp = float(np.float32(bgp.b0))
     elif bgp.direction == "horizontal":
@@ -143,13 +208,27 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> SceneLayers:
         bg_plane_disp = np.broadcast_to(background_disparity(bgp.mode, bgp.b0, bgp.b1, bgp.direction, h, 1), (h, w))
     disparity = background_disparity(bgp.mode, bgp.b0, bgp.b1, bgp.direction, h, w)
     ones = np.broadcast_to(np.float32(1.0), (h, w))
+    canvas = None
+    if m:  # the canvas the blur takes: everything `m` px further; the frame's planes are views of it
+        H, W = h + 2 * m, w + 2 * m
+        big = beyond_frame(photo, bgp.crop, bgp.flip, h, w, m)
+        big[m:m + h, m:m + w] = bg_rgb
+        bg_rgb = big[m:m + h, m:m + w]
+        canvas = [Plane(rgb=big, alpha=np.broadcast_to(np.float32(1.0), (H, W)),
+                        disparity=bg_plane_disp if bgp.mode == "flat" else ramp_beyond(bgp, h, w, m))]
     planes = [Plane(rgb=bg_rgb, alpha=ones, disparity=bg_plane_disp)]
     for role, params in (("middle", scene.middle), ("front", scene.front)):
         asset = _asset(library, scene, role)
         _, _, ew, eh = asset.extent
         size = placed_size(params.scale, ew, eh)
         premul = library.premultiplied(asset, pyramid_level((ew, eh), size))
-        prgb, pa = place_premultiplied(premul, size, params, h, w)
+        if canvas is None:
+            prgb, pa = place_premultiplied(premul, size, params, h, w)
+        else:
+            crgb, ca = place_premultiplied(premul, size, replace(params, x=params.x + m, y=params.y + m), H, W)
+            extend_cut_sides(crgb, ca, params.x + m, params.y + m, size, params.anchored)
+            canvas.append(Plane(rgb=crgb, alpha=ca, disparity=float(params.disparity), box=_box(ca)))
+            prgb, pa = crgb[m:m + h, m:m + w], ca[m:m + h, m:m + w]
         planes.append(Plane(rgb=prgb, alpha=pa, disparity=float(params.disparity)))
 
     boxes = []
@@ -161,4 +240,10 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> SceneLayers:
         if box is not None:
             d = disparity[box]
             d[p.alpha[box] >= COVER_THRESHOLD] = p.disparity
-    return SceneLayers(planes=planes, disparity=disparity, boxes=boxes)
+    return SceneLayers(planes=planes, disparity=disparity, boxes=boxes, canvas=canvas, margin=m)
+
+
+def _box(alpha: np.ndarray) -> tuple[int, int, int, int]:
+    """A cutout's `Plane.box` ((0, 0, 0, 0) when it is clear)."""
+    box = alpha_box(alpha)
+    return (0, 0, 0, 0) if box is None else box

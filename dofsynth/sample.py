@@ -45,8 +45,10 @@ class SampleRender:
         self._views = None  # (n, (left, right)) of the last dual-pixel target, adding up to it
 
     def _prepared(self) -> list:
+        """The planes the renderer takes (`SceneLayers.blur_planes`: `margin` px past the frame),
+        prepared in place; `planes` are views of their frame part, so they are prepared too."""
         if self._blur_planes is None:
-            self._blur_planes = prepare_planes(self.planes, self.look)
+            self._blur_planes = prepare_planes(list(self._layers.blur_planes), self.look)
         return self._blur_planes
 
     def aif_rows(self, r0: int, r1: int) -> np.ndarray:
@@ -57,8 +59,14 @@ class SampleRender:
         return self._layers.aif_rows(r0, r1)  # the naive baseline stores the linear composite
 
     def _render(self, n: int, aperture=None) -> np.ndarray:
+        """Target n's render on the canvas, cut to the frame (3, H, W)."""
         t = self.scene.targets[n]
-        return render_look(self._prepared(), t.focus, t.max_coc, aperture or self.scene.aperture, self.look)
+        m = self._layers.margin
+        img = render_look(self._prepared(), t.focus, t.max_coc, aperture or self.scene.aperture, self.look, m)
+        if not m:
+            return img
+        h, w = self.scene.size
+        return np.ascontiguousarray(img[:, m:m + h, m:m + w])
 
     def target(self, n: int) -> np.ndarray:
         """Target n (3, H, W), restored: the same whether dual-pixel views are asked for or not."""

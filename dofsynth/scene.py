@@ -25,6 +25,7 @@ estimated on 128 px thumbnails). Focus targets of a scene lie at least
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import asdict, dataclass, replace
 from typing import Any
@@ -33,6 +34,7 @@ from typing import Any
 from dofsynth.assets import Asset, AssetLibrary
 from dofsynth.assets.placement import ObjectParams, draw_crop, draw_object, visible_shares
 from dofsynth.optics.aperture import APERTURES, Aperture, aperture_from_dict
+from dofsynth.optics.kernel import support_radius
 from dofsynth.recipe import Recipe, recipe_lens, recipe_look
 from dofsynth.render.look import Look
 from dofsynth.rng import draw_uniform, sample_key, sample_rng, sample_seed
@@ -53,6 +55,8 @@ class BackgroundParams:
     direction: str | None           # "horizontal" | "vertical" | None (flat; "none" in the record)
     crop: tuple[int, int, int, int]  # (x, y, w, h) in source pixels, before the flip
     flip: bool                      # horizontal flip after cropping
+    margin: int = 0                 # px the planes extend past each frame edge for the blur (`frame_margin`)
+    real: tuple[int, int, int, int] = (0, 0, 0, 0)  # (top, bottom, left, right): px of that margin from the photo
 
 
 @dataclass(frozen=True)
@@ -95,7 +99,7 @@ class Scene:
             "size": list(self.size),
             "assets": {k: asdict(self.assets[k]) for k in ("background", "front", "middle")},
             "background": {**asdict(self.background), "crop": list(self.background.crop),
-                           "direction": self.background.direction or "none"},
+                           "real": list(self.background.real), "direction": self.background.direction or "none"},
             "front": _object_dict(self.front), "middle": _object_dict(self.middle),
             "targets": [t.to_dict() for t in self.targets],
             "aperture": self.aperture.to_dict(),
@@ -111,6 +115,7 @@ class Scene:
             size=(int(d["size"][0]), int(d["size"][1])),
             assets={k: AssetRef(**d["assets"][k]) for k in ("background", "front", "middle")},
             background=BackgroundParams(**{**d["background"], "crop": tuple(int(v) for v in d["background"]["crop"]),
+                                           "real": tuple(int(v) for v in d["background"].get("real", (0, 0, 0, 0))),
                                            "direction": _direction(d["background"].get("direction"))}),
             front=_object(d["front"]), middle=_object(d["middle"]),
             targets=tuple(Target(**t) for t in d["targets"]),
@@ -180,6 +185,41 @@ def _draw_focus(rng, plane_share: float, ramp: tuple[float, float], f1: float, f
             return min(a + u, b)
         u -= b - a
     return free[-1][1] if free else 1.0
+
+
+def frame_margin(background: BackgroundParams, planes: tuple[float, ...], targets, look: Look,
+                 size: tuple[int, int]) -> int:
+    """Px past each frame edge that the blur of any target reaches: the support radius of the
+    largest CoC |max_coc * scale * (d - focus)| over the targets, the chromatic scales and the
+    planes' disparities (a ramp extrapolated over that margin too). The planes are composed
+    that far beyond the frame, so border pixels blur what lies beyond, not copies of the edge."""
+    H, W = size
+    lo, hi = min(background.b0, background.b1), max(background.b0, background.b1)
+    scale = max(look.chromatic)
+
+    def reach(lo: float, hi: float) -> int:
+        d = (lo, hi) + tuple(planes)
+        return max((support_radius(t.max_coc * scale * max(abs(v - t.focus) for v in d)) for t in targets), default=0)
+
+    m = reach(lo, hi)
+    if background.mode == "ramp" and m:  # the ramp goes on past the frame: its CoC grows there
+        step = (hi - lo) * m / max((W if background.direction == "horizontal" else H) - 1, 1)
+        m = reach(max(lo - step, 0.0), min(hi + step, 1.0)) + 1
+    return int(m)
+
+
+def real_margin(crop, photo_size: tuple[int, int], size: tuple[int, int], margin: int,
+                flip: bool) -> tuple[int, int, int, int]:
+    """(top, bottom, left, right): how many px of a `margin` around the frame the photo holds
+    beyond the crop (x, y, w, h) at the crop's scale (the rest is its edge replicated); left
+    and right as seen in the frame (after the flip)."""
+    x, y, cw, ch = crop
+    pw, ph = photo_size
+    H, W = size
+    sx, sy = cw / W, ch / H  # source px per output px
+    side = lambda free, s: int(min(margin, math.floor(free / s + 1e-9)))  # noqa: E731
+    top, bottom, left, right = side(y, sy), side(ph - y - ch, sy), side(x, sx), side(pw - x - cw, sx)
+    return (top, bottom, right, left) if flip else (top, bottom, left, right)
 
 
 def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int, exclude=()) -> Scene:
@@ -252,6 +292,11 @@ def sample_scene(recipe: Recipe, library: AssetLibrary, split: str, index: int, 
     ar = recipe.render.aperture
     aperture = APERTURES[ar.kind].from_rules(ar, rng)
     options = Options(look=recipe_look(recipe), members=tuple(recipe.render.members))
+
+    # 7. how far past the frame the blur reaches, and how much of that the photo holds (no draw)
+    margin = frame_margin(background, (f1, f0), targets, options.look, (H, W))
+    background = replace(background, margin=margin,
+                         real=real_margin(background.crop, bg.size, (H, W), margin, background.flip))
 
     return Scene(
         key=sample_key(split, index), split=split, index=int(index), seed=seed, size=(H, W),

@@ -1,5 +1,6 @@
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -231,3 +232,74 @@ def test_small_placements_resample_from_the_cached_pyramid_with_the_same_pixels(
     monkeypatch.setenv("DOFSYNTH_ASSET_CACHE_MIB", "lots")
     with pytest.raises(ValueError, match="DOFSYNTH_ASSET_CACHE_MIB='lots': expected a number of MiB"):
         scene_layers(sample_scene(demo_recipe, fresh, "train", 0), fresh)
+
+
+def _reference_target(scene, library, n: int) -> np.ndarray:
+    """Target n of `scene` the long way: the WHOLE background photo as the plane (flipped as
+    the scene says, at the crop's scale 1), the objects placed on it where the crop puts them,
+    rendered and cut to the frame afterwards: linear (3, H, W)."""
+    from dofsynth.compose import extend_cut_sides
+    from dofsynth.image import pyramid_level
+    from dofsynth.render.look import prepare_planes, render_look, restore
+    from dofsynth.render.planes import Plane
+
+    bgp, (h, w) = scene.background, scene.size
+    photo = np.array(library.load_background(library[scene.assets["background"].id]), dtype=np.float32)
+    x, y, cw, ch = bgp.crop
+    assert (cw, ch) == (w, h)  # scale 1
+    if bgp.flip:
+        photo, x = np.ascontiguousarray(photo[:, ::-1]), photo.shape[1] - x - cw
+    H, W = photo.shape[:2]
+    planes = [Plane(photo, np.ones((H, W), np.float32), float(bgp.b0))]
+    for role, params in (("middle", scene.middle), ("front", scene.front)):
+        asset = library[scene.assets[role].id]
+        size = placed_size(params.scale, *asset.extent[2:])
+        premul = library.premultiplied(asset, pyramid_level(asset.extent[2:], size))
+        rgb, a = place_premultiplied(premul, size, replace(params, x=params.x + x, y=params.y + y), H, W)
+        extend_cut_sides(rgb, a, params.x + x, params.y + y, size, params.anchored)
+        planes.append(Plane(rgb, a, float(params.disparity)))
+    look, t = scene.options.look, scene.targets[n]
+    img = restore(render_look(prepare_planes(planes, look), t.focus, t.max_coc, scene.aperture, look), look)
+    return img[:, y:y + h, x:x + w]
+
+
+def test_a_target_blurs_what_the_photo_holds_past_the_frame_edge(tmp_path, write_recipe):
+    """A 64 px frame cropped 1:1 from a 160 px photo with bright lights all around: each
+    target equals a render of the whole photo cut to the frame afterwards, within 1 sRGB code,
+    border band included, wherever the photo holds the margin; replicating the frame's edge
+    instead (margin 0, how targets were made before) is far off in the border band."""
+    from dofsynth.codecs import encode_srgb_png_planar
+    from dofsynth.io import decode_image
+    from dofsynth.sample import render_sample
+
+    rng = np.random.default_rng(3)
+    photo = (rng.random((160, 160, 3)) * 0.3).astype(np.float32)
+    photo[2::9, 2::9] = 1.0   # lights everywhere, also just past any crop's edge
+    (tmp_path / "bg").mkdir()
+    cv2.imwrite(str(tmp_path / "bg" / "lights.png"), np.round(photo * 255).astype(np.uint8))
+    recipe = load_recipe(write_recipe(backgrounds=tmp_path / "bg", replace={
+        "flat_share = 0.3": "flat_share = 1.0", "crop = [0.6, 1.0]": "crop = [0.4, 0.4]",
+        "max_coc = [2.0, 4.0]": "max_coc = [6.0, 8.0]", "test_share = 0.25": "test_share = 0.0",
+        "samples = { train = 6, test = 2 }": "samples = { train = 6, test = 0 }"}))
+    library = build_library(recipe)
+    checked = worst = 0
+    for index in range(6):
+        scene = sample_scene(recipe, library, "train", index)
+        m = scene.background.margin
+        assert m == max(int(np.ceil(t.max_coc * max(abs(d - t.focus) for d in (0.0, scene.middle.disparity,
+                                                                                 scene.front.disparity))))
+                        for t in scene.targets)
+        if scene.background.real != (m, m, m, m):
+            continue   # the crop lies too near the photo's edge for the comparison
+        members = render_sample(scene, library)
+        old = render_sample(replace(scene, background=replace(scene.background, margin=0)), library)
+        for n in range(len(scene.targets)):
+            got = decode_image(members[f"dof.{n}.png"], raw=True).astype(int)
+            want = decode_image(encode_srgb_png_planar(_reference_target(scene, library, n)), raw=True).astype(int)
+            assert np.abs(got - want).max() <= 1, (index, n)
+            band = np.ones(got.shape[:2], bool)
+            band[m:-m, m:-m] = False
+            before = decode_image(old[f"dof.{n}.png"], raw=True).astype(int)
+            worst = max(worst, int(np.abs(before - want)[band].max()))
+            checked += 1
+    assert checked >= 4 and worst > 40, (checked, worst)   # the edge copies were far off

@@ -42,10 +42,21 @@ def test_members_and_record(setup):
         n = len(scene.targets)
         assert set(m) == {"aif.png", "depth.exr", "cover.png", "json"} | {f"dof.{i}.png" for i in range(n)}
         rec = json.loads(m["json"])
-        assert rec["schema_version"] == SCHEMA_VERSION == 4 and rec["renderer"] == METHODS["layered"].renderer_id and rec["dofsynth_version"] == "0.1.0"
+        assert rec["schema_version"] == SCHEMA_VERSION == 5 and rec["renderer"] == METHODS["layered"].renderer_id and rec["dofsynth_version"] == "0.1.0"
         assert rec["key"] == scene.key and list(rec) == sorted(rec)
         assert {k: v for k, v in rec.items() if k not in ("schema_version", "renderer", "dofsynth_version")} == \
             json.loads(json.dumps(scene.to_dict()))
+
+
+def _blur_planes(layers, hl) -> list:
+    """The planes the targets are rendered from (`margin` px past the frame), boosted."""
+    return [Plane(boost(np.array(p.rgb), **hl), p.alpha, p.disparity, p.box) for p in layers.blur_planes]
+
+
+def _frame(img: np.ndarray, layers) -> np.ndarray:
+    """A render of `_blur_planes` (H + 2m, W + 2m, ...) cut to the frame."""
+    m = layers.margin
+    return img[m:img.shape[0] - m, m:img.shape[1] - m] if m else img
 
 
 def test_pixels_are_what_the_format_says(setup):
@@ -58,12 +69,13 @@ def test_pixels_are_what_the_format_says(setup):
     assert d["depth"].dtype == np.float32 and np.array_equal(d["depth"], layers.disparity)
     assert np.array_equal(to_uint8(d["cover"]), to_uint8(layers.cover))
     hl = vars(scene.options.look.highlight)
-    planes = [Plane(boost(p.rgb, **hl), p.alpha, p.disparity) for p in layers.planes]
-    boosted = SceneLayers(planes, layers.disparity)
+    boosted = SceneLayers([Plane(boost(p.rgb, **hl), p.alpha, p.disparity) for p in layers.planes], layers.disparity)
     assert np.array_equal(to_uint8(d["aif"]), linear_to_srgb8(unboost(boosted.aif, **hl)))
+    assert layers.margin == scene.background.margin > 0   # targets: the planes past the frame, cut after
+    planes = _blur_planes(layers, hl)
     ap = aperture_from_dict(scene.aperture.to_dict())
     for i, t in enumerate(scene.targets):
-        want = linear_to_srgb8(unboost(render_planes(planes, t.focus, t.max_coc, ap), **hl))
+        want = linear_to_srgb8(unboost(_frame(render_planes(planes, t.focus, t.max_coc, ap), layers), **hl))
         assert np.array_equal(to_uint8(d["dof"][i]), want)
 
 
@@ -147,7 +159,7 @@ def test_image_members_say_srgb_and_the_depth_member_says_what_it_is(setup):
     assert list(f.channels()) == ["disparity"]                # not "Z": that means distance
     header = f.header()
     assert header["dofsynth:quantity"] == "normalized disparity"
-    assert "1 = nearest" in header["dofsynth:convention"] and header["dofsynth:schema_version"] == "4"
+    assert "1 = nearest" in header["dofsynth:convention"] and header["dofsynth:schema_version"] == "5"
 
 
 def test_shards_of_older_schemas_still_decode(setup):
@@ -266,13 +278,13 @@ def test_longitudinal_chromatic_aberration_scales_each_channels_coc():
     d = decode_sample(render_sample(scene, library))
     layers = scene_layers(scene, library)
     hl = scene.to_dict()["options"]["highlight"]
-    planes = [Plane(boost(p.rgb, **hl), p.alpha, p.disparity, p.box) for p in layers.planes]
+    planes = _blur_planes(layers, hl)
     ap = aperture_from_dict(scene.aperture.to_dict())
     t = scene.targets[0]
-    mixed = np.stack([render_planes(planes, t.focus, t.max_coc * s, ap)[:, :, ch]
+    mixed = np.stack([_frame(render_planes(planes, t.focus, t.max_coc * s, ap), layers)[:, :, ch]
                       for ch, s in enumerate((0.8, 1.0, 1.25))], axis=2)
     assert np.array_equal(to_uint8(d["dof"][0]), linear_to_srgb8(unboost(mixed, **hl)))
-    same = render_planes(planes, t.focus, t.max_coc, ap)
+    same = _frame(render_planes(planes, t.focus, t.max_coc, ap), layers)
     assert not np.array_equal(mixed[:, :, 0], same[:, :, 0])      # red really is defocused differently
     plain = sample_scene(recipe_from_text(base, "smoke.toml", root), library, "train", 1)
     assert "chromatic" not in plain.to_dict()["options"]
@@ -341,10 +353,9 @@ def test_a_recipe_can_choose_the_subaperture_method_and_the_record_says_so(tmp_p
     assert {k: d["record"]["options"][k] for k in ("method", "cells", "cat_eye")} == {"method": "subaperture", "cells": 2, "cat_eye": 0.3}
     layers = scene_layers(scene, library)
     hl = d["record"]["options"]["highlight"]
-    planes = [Plane(boost(p.rgb, **hl), p.alpha, p.disparity, p.box) for p in layers.planes]
     t = scene.targets[0]
-    want = render_planes(planes, t.focus, t.max_coc, aperture_from_dict(d["record"]["aperture"]), method="subaperture",
-                         cells=2, cat_eye=0.3)
+    want = _frame(render_planes(_blur_planes(layers, hl), t.focus, t.max_coc, aperture_from_dict(d["record"]["aperture"]),
+                                method="subaperture", cells=2, cat_eye=0.3, margin=layers.margin), layers)
     assert np.array_equal(to_uint8(d["dof"][0]), linear_to_srgb8(unboost(want, **hl)))
     path = tmp_path / "sub.toml"
     path.write_text(text.replace('"builtin"', '"builtin"'))

@@ -67,7 +67,8 @@ def test_record_fields_match_the_format(many):
     assert set(d["assets"]) == {"background", "front", "middle"}
     assert set(d["assets"]["front"]) == {"id", "path", "sha256", "colour"}
     assert d["assets"]["front"]["colour"] == "file"  # built-in cutouts: their own colour
-    assert set(d["background"]) == {"mode", "b0", "b1", "direction", "crop", "flip"}
+    assert set(d["background"]) == {"mode", "b0", "b1", "direction", "crop", "flip", "margin", "real"}
+    assert d["background"]["margin"] > 0 and len(d["background"]["real"]) == 4
     assert set(d["front"]) == {"disparity", "scale", "x", "y", "flip", "anchored", "visible", "rejected"}
     assert d["aperture"]["kind"] == "polygon" and d["aperture"]["blades"] == 6
     assert d["options"]["highlight"] == {"threshold": 0.9, "gain": 4.0, "power": 2.0}

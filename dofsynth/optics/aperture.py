@@ -160,15 +160,15 @@ class Polygon(Aperture):
         return inside
 
 
-def cat_eye_offset(shape: tuple[int, int], strength: float, gy=None, gx=None):
+def cat_eye_offset(shape: tuple[int, int], strength: float, gy=None, gx=None, margin: int = 0):
     """(oy, ox): the centre of the vignetting circle, in units of the aperture radius, at pixel
-    rows gy / columns gx (default: every pixel) of a frame of `shape`: `strength` times the
-    position relative to the frame centre over the half-diagonal (so |offset| = strength at the
-    corners, 0 at the centre)."""
+    rows gy / columns gx (default: every pixel) of planes of `shape`: `strength` times the
+    position relative to the centre over the frame's half-diagonal (so |offset| = strength at
+    the frame's corners, 0 at its centre); the frame is `shape` less `margin` px on each side."""
     h, w = shape
     if gy is None:
         gy, gx = np.mgrid[0:h, 0:w].astype(np.float64)
-    half = 0.5 * math.hypot(h - 1, w - 1) or 1.0
+    half = 0.5 * math.hypot(h - 1 - 2 * margin, w - 1 - 2 * margin) or 1.0
     return strength * (gy - (h - 1) / 2) / half, strength * (gx - (w - 1) / 2) / half
 
 

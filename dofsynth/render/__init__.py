@@ -49,6 +49,7 @@ class RenderOptions:
     samples: int | None = None
     cells: int = 1
     cat_eye: float = 0.0
+    margin: int = 0  # px of the planes past the frame on each side: cat-eye is measured on the frame
 
     def __post_init__(self):
         if not (math.isfinite(self.level_step) and self.level_step > 0):
@@ -63,6 +64,8 @@ class RenderOptions:
             raise ValueError(f"cells must be an integer in 1..16 (an n x n grid), got {c}")
         if not (math.isfinite(self.cat_eye) and 0.0 <= self.cat_eye <= 1.0):
             raise ValueError(f"cat_eye must be a strength in [0, 1], got {self.cat_eye}")
+        if isinstance(self.margin, bool) or not isinstance(self.margin, (int, np.integer)) or self.margin < 0:
+            raise ValueError(f"margin must be a non-negative integer of pixels, got {self.margin}")
 
 
 _OPTION_DEFAULTS = {f.name: f.default for f in dataclasses.fields(RenderOptions)}
@@ -87,10 +90,10 @@ class Method:
 METHODS: dict[str, Method] = {
     "layered": Method(render_layered, "layered-v5", ("level_step", "level_ratio"),
                       summary="each plane blurred on its own and composited back to front (fast)"),
-    "subaperture": Method(render_subaperture, "subaperture-v4", ("level_step", "level_ratio", "cells", "cat_eye"),
+    "subaperture": Method(render_subaperture, "subaperture-v4", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
                           summary="the aperture cut into cells x cells parts, layered per part: shows what "
                                   "a blurred edge reveals behind it, about cells^2 x the cost"),
-    "exact": Method(render_exact, "exact-v2", ("samples", "cat_eye"), uses_boxes=False,
+    "exact": Method(render_exact, "exact-v2", ("samples", "cat_eye", "margin"), uses_boxes=False,
                     summary="every aperture point warped and composited, averaged (slow, a reference)"),
 }
 
@@ -112,7 +115,7 @@ def readers(option: str) -> str:
 
 def render_planes(planes, focus: float, max_coc: float, aperture: Aperture = Disk(), *, method: str = DEFAULT_METHOD,
                   level_step: float = 0.5, level_ratio: float = LEVEL_RATIO, samples: int | None = None,
-                  cells: int = 1, cat_eye: float = 0.0, planar: bool = False) -> np.ndarray:
+                  cells: int = 1, cat_eye: float = 0.0, margin: int = 0, planar: bool = False) -> np.ndarray:
     """Render a layered scene with shallow depth of field; linear RGB (H, W, 3) float32.
 
     planes: Plane, back to front (disparity in [0, 1], 1 = nearest). focus: the in-focus
@@ -120,7 +123,7 @@ def render_planes(planes, focus: float, max_coc: float, aperture: Aperture = Dis
     dofsynth.optics.aperture. method: a key of METHODS; level_step, level_ratio, samples,
     cells (subaperture: an n x n grid) and cat_eye (subaperture, exact: optical vignetting,
     the aperture clipped by a unit circle offset by cat_eye x the position over the frame's
-    half-diagonal) are its RenderOptions. The result is the premultiplied composite over black (opaque if the
+    half-diagonal; `margin`: px of the planes past that frame on each side) are its RenderOptions. The result is the premultiplied composite over black (opaque if the
     backmost plane is). planar=True returns the same values as (3, H, W) (the renderer's own
     layout: no interleaving copy, which at 4096 px is a fresh 192 MiB frame and ~0.17 s).
     """
@@ -130,7 +133,7 @@ def render_planes(planes, focus: float, max_coc: float, aperture: Aperture = Dis
     if not isinstance(aperture, Aperture):
         raise ValueError(f"aperture must be an aperture kind (Disk(), Polygon(...)), got {aperture!r}")
     options = RenderOptions(level_step=level_step, level_ratio=level_ratio, samples=samples, cells=cells,
-                            cat_eye=float(cat_eye))
+                            cat_eye=float(cat_eye), margin=margin)
     unread = [f for f in _OPTION_DEFAULTS if f not in m.options and getattr(options, f) != _OPTION_DEFAULTS[f]]
     if unread:
         raise ValueError("; ".join(f"{f} applies to method {readers(f)}, not {method!r}" for f in unread))

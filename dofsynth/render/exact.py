@@ -86,7 +86,7 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, optio
     px, py, wt = aperture_samples(aperture, cmax, options.samples)
     strength = options.cat_eye
     if strength:  # the share of the aperture inside each frame position's clip circle (a map)
-        oy, ox = cat_eye_offset((H, W), strength)
+        oy, ox = cat_eye_offset((H, W), strength, margin=options.margin)
         area = np.zeros((H, W), np.float32)
         for x, y, w in zip(px, py, wt):
             area += np.float32(w) * ((y - oy) ** 2 + (x - ox) ** 2 <= 1.0)
@@ -99,7 +99,7 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, optio
             colour, a = warped[:, :, :3], warped[:, :, 3:4]
             if strength:  # the light counts where p lies in the clip circle of its source point
                 sx, sy = np.clip(mx, 0, W - 1), np.clip(my, 0, H - 1)  # (replicated beyond the frame)
-                oy, ox = cat_eye_offset((H, W), strength, sy, sx)
+                oy, ox = cat_eye_offset((H, W), strength, sy, sx, options.margin)
                 inside = (y - oy) ** 2 + (x - ox) ** 2 <= 1.0
                 colour = colour * (inside / np.maximum(_warp(area, sx, sy), 1e-12)).astype(np.float32)[:, :, None]
             comp = colour + (1.0 - a) * comp

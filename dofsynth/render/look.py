@@ -113,10 +113,14 @@ def prepare_planes(planes: list[Plane], look: Look) -> list[Plane]:
     return planes
 
 
-def render_look(planes: list[Plane], focus: float, max_coc: float, aperture: Aperture, look: Look) -> np.ndarray:
+def render_look(planes: list[Plane], focus: float, max_coc: float, aperture: Aperture, look: Look,
+                margin: int = 0) -> np.ndarray:
     """Planar (3, H, W) float32 render of prepared planes (`prepare_planes`), not yet restored:
-    with chromatic aberration channel ch is the render at max_coc * chromatic[ch]."""
+    with chromatic aberration channel ch is the render at max_coc * chromatic[ch]. `margin`: px
+    of the planes past the frame on each side (the frame is what cat-eye is measured on)."""
     scales, kw = look.chromatic, look.keywords()
+    if margin and look.cat_eye:
+        kw["margin"] = int(margin)
     img = render_planes(planes, float(focus), float(max_coc) * scales[1], aperture, planar=True, **kw)
     for ch in (0, 2):
         if scales[ch] != scales[1]:

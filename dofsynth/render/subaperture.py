@@ -94,7 +94,7 @@ CAT_EYE_GRID = 9      # frame positions per side where the cells' weights are me
 CAT_EYE_POINTS = 24   # sample points per side of a cell for its share inside the vignetting circle
 
 
-def cat_eye_shares(parts, shape: tuple[int, int], strength: float) -> list[np.ndarray]:
+def cat_eye_shares(parts, shape: tuple[int, int], strength: float, margin: int = 0) -> list[np.ndarray]:
     """For each cell of `parts` ((cell, w) pairs covering the aperture), an (H, W) float32 map:
     the share of a source point's light that passes through that cell, for a source at each
     frame position: the cell's part of the aperture inside the vignetting circle (radius 1 about
@@ -104,14 +104,15 @@ def cat_eye_shares(parts, shape: tuple[int, int], strength: float) -> list[np.nd
     h, w = (int(v) for v in shape)
     # each cell's measured share relative to its unclipped one (the same points), times its
     # area share: exactly the cells' weights where the circle leaves the aperture whole
-    coarse = [wk * _cat_eye_grid(cell, (h, w), float(strength)) / max(_cat_eye_grid(cell, (h, w), 0.0)[0, 0], 1e-12)
+    coarse = [wk * _cat_eye_grid(cell, (h, w), float(strength), int(margin))
+              / max(_cat_eye_grid(cell, (h, w), 0.0, 0)[0, 0], 1e-12)
               for cell, wk in parts]
     total = np.maximum(np.sum(coarse, axis=0), 1e-12)
     return [cv2.resize(c / total, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float32) for c in coarse]
 
 
 @lru_cache(maxsize=256)
-def _cat_eye_grid(cell: Cell, shape: tuple[int, int], strength: float) -> np.ndarray:
+def _cat_eye_grid(cell: Cell, shape: tuple[int, int], strength: float, margin: int = 0) -> np.ndarray:
     """The CAT_EYE_GRID x CAT_EYE_GRID measured shares of the aperture in `cell` and the circle (read-only; `cat_eye_shares`)."""
     h, w = shape
     t = (np.arange(CAT_EYE_POINTS) + 0.5) / CAT_EYE_POINTS
@@ -122,7 +123,7 @@ def _cat_eye_grid(cell: Cell, shape: tuple[int, int], strength: float) -> np.nda
     unit = (cell.x1 - cell.x0) * (cell.y1 - cell.y0) / CAT_EYE_POINTS**2 / cell.base.area(1.0)
     gy = np.linspace(0, h - 1, CAT_EYE_GRID)
     gx = np.linspace(0, w - 1, CAT_EYE_GRID)
-    oy, ox = cat_eye_offset(shape, strength, *np.meshgrid(gy, gx, indexing="ij"))
+    oy, ox = cat_eye_offset(shape, strength, *np.meshgrid(gy, gx, indexing="ij"), margin=margin)
     d2 = (py[None, None] - oy[..., None, None]) ** 2 + (px[None, None] - ox[..., None, None]) ** 2
     coarse = (((d2 <= 1.0) & inside).sum(axis=(2, 3)) * unit).astype(np.float32)
     coarse.setflags(write=False)
@@ -281,7 +282,7 @@ def render_subaperture(planes, focus: float, max_coc: float, aperture: Aperture,
     if n == 1 and not options.cat_eye:
         return render_layered(planes, focus, max_coc, aperture, options)
     parts = cells(aperture, n)
-    shares = cat_eye_shares(parts, planes[0].shape, options.cat_eye) if options.cat_eye else None
+    shares = cat_eye_shares(parts, planes[0].shape, options.cat_eye, options.margin) if options.cat_eye else None
     acc = None
     for k, (cell, w) in enumerate(parts):
         if shares is None:
