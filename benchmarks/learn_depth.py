@@ -12,7 +12,7 @@ in OUT/runs/depth-<name>, reused when finished):
   "shards only, colour jitter"   [depth] jitter = 0.8: random colour order, saturation,
                      contrast and brightness, so depth must come from structure, not colour.
 Then MAE of the min-max normalized disparity, raw and after the paper's 5-knot linear-spline fit
-to the ground truth, for the untrained network, each run and the best constant map (the spline
+to the ground truth, for the untrained network, each run and the best constant map (the median; the spline
 fit of a flat prediction), on two sets: the held-out validation share of the train split (new
 scenes of the training assets) and the test split (scenes of assets never seen in training:
 recipes split the assets). Every size is printed.
@@ -77,7 +77,7 @@ def main() -> None:
     for name, (val, test) in rows:
         print(f"| {name} | {val[0]['mae']:.4f} | {val[0]['mae_spline']:.4f} | {test[0]['mae']:.4f} | {test[0]['mae_spline']:.4f} |")
     val, test = rows[0][1][0][1], rows[0][1][1][1]
-    print(f"| constant (the best flat map) | {val['mae']:.4f} | {val['mae_spline']:.4f} | {test['mae']:.4f} | {test['mae_spline']:.4f} |")
+    print(f"| constant (the best flat map: the median) | {val['mae']:.4f} | {val['mae_spline']:.4f} | {test['mae']:.4f} | {test['mae_spline']:.4f} |")
 
 
 if __name__ == "__main__":

@@ -96,6 +96,8 @@ def test_minmax_and_the_five_knot_spline_fit():
     assert np.abs(spline_fit(gt, warped) - warped).max() < 1e-9
     assert np.abs(spline_fit(gt, gt ** 2) - gt ** 2).max() > 1e-3   # only a spline with these knots fits exactly
     assert e["mae_constant"] == pytest.approx(np.abs(gt - 0.5).mean())
+    skewed = np.array([[0.0, 0.0, 0.0, 1.0]])   # the best constant under MAE is the median, 0: MAE 1/4
+    assert depth_errors(skewed, skewed)["mae_constant"] == pytest.approx(0.25)   # (the mean, 1/4, would give 3/8)
     assert np.allclose(spline_fit(np.zeros(5), np.arange(5.0)), 2.0)   # a flat prediction: the mean
 
 

@@ -231,13 +231,14 @@ def spline_fit(pred: np.ndarray, gt: np.ndarray, knots: int = 5) -> np.ndarray:
 def depth_errors(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None) -> dict:
     """{"mae", "mae_spline", "mae_constant"} of a predicted map against normalized ground truth,
     both (H, W), over the `valid` pixels: the min-max normalized prediction, its 5-knot spline fit
-    to gt, and the best constant (gt's mean, the spline fit of a flat prediction)."""
+    to gt, and the best constant map under this error (gt's median: the mean, which the spline's
+    least-squares fit gives a flat prediction, is the best constant of the squared error only)."""
     v = np.ones(np.shape(gt), bool) if valid is None else np.asarray(valid, bool)
     p, g = np.asarray(pred, np.float64)[v], np.asarray(gt, np.float64)[v]
     span = p.max() - p.min()
     p_n = (p - p.min()) / span if span > 1e-9 else np.zeros_like(p)
     return {"mae": float(np.abs(p_n - g).mean()), "mae_spline": float(np.abs(spline_fit(p, g) - g).mean()),
-            "mae_constant": float(np.abs(g - g.mean()).mean())}
+            "mae_constant": float(np.abs(g - np.median(g)).mean())}
 
 
 def predict_disparity(model: DepthNet, image_srgb: np.ndarray, side: int) -> np.ndarray:
