@@ -12,8 +12,8 @@ in OUT/runs/depth-<name>, reused when finished):
   "shards only, colour jitter"   [depth] jitter = 0.8: random colour order, saturation,
                      contrast and brightness, so depth must come from structure, not colour.
 Then MAE of the min-max normalized disparity, raw and after the paper's 5-knot linear-spline fit
-to the ground truth, for the untrained network, each run and the best constant map (the median; the spline
-fit of a flat prediction), on two sets: the held-out validation share of the train split (new
+to the ground truth, for the untrained network, each run and the best constant map (the
+ground truth's median), on two sets: the held-out validation share of the train split (new
 scenes of the training assets) and the test split (scenes of assets never seen in training:
 recipes split the assets). Every size is printed.
 """
