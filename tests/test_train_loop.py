@@ -177,6 +177,31 @@ def test_upsampling_steps_reach_the_training_low_resolution():
     assert inference_sizes((256, 128), 256) == [(256, 128)]
 
 
+@pytest.mark.parametrize("norm", ["batch", "none"])
+def test_inference_folds_and_bands_without_changing_the_result(norm, monkeypatch):
+    """`dofsynth render --model` runs a copy of the model made for inference (batch
+    normalisation folded into the convolutions, channels-last) with the full-resolution steps in
+    bands of rows; the photo comes out as the model itself makes it, within float rounding."""
+    from dofsynth.train import infer
+
+    cfg = tiny_config(model={"coc_ref": 8.0, "norm": norm}, infer={"low_res_side": 32})
+    torch.manual_seed(0)
+    model = DeepLensNet(cfg.model).eval()
+    for m in model.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):  # statistics far from the identity
+            m.running_mean.uniform_(-0.3, 0.3), m.running_var.uniform_(0.3, 2.0), m.weight.data.uniform_(0.5, 1.5)
+    rng = np.random.default_rng(1)
+    image = rng.random((150, 136, 3), dtype=np.float32)
+    disparity = np.tile(np.linspace(0, 1, 136, dtype=np.float32), (150, 1))
+    monkeypatch.setattr(infer, "BAND_ROWS", None)
+    plain = render_with(model, cfg, image, disparity, 0.4)
+    fast = infer.for_inference(model)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fast.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules()) == (norm == "batch")  # untouched
+    monkeypatch.setattr(infer, "BAND_ROWS", 16)   # 150 rows: bands of 16 and a last one of 6
+    assert np.abs(render_with(fast, cfg, image, disparity, 0.4) - plain).max() < 1e-5
+
+
 class _FixedBlur(torch.nn.Module):
     """A lens-blur stand-in with a trained network's habit: a blur of a fixed size in low-res
     pixels (a Gaussian of sigma 3), whatever the photo's size."""

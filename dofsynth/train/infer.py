@@ -12,15 +12,21 @@ low_res_side is enlarged to it first and the result area-reduced back.
 
 aperture = r*/r_max in (0, 1]: the signed disparity fed to the network is
 (disparity - focus) * aperture (the network was trained with c / r_max). Inference runs in
-float32 under torch.inference_mode, on CUDA when available.
+float32 under torch.inference_mode, on CUDA when available, with a copy of the model made for
+it (`for_inference`: batch normalisation folded into its convolutions, channels-last memory)
+and the upsamplings' full-resolution part in bands of BAND_ROWS rows: the same result within
+float rounding (tested within 1e-5) at about half the CPU time and a fraction of the memory.
 """
 from __future__ import annotations
 
+import copy
 import math
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
+from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from dofsynth.color import linear_to_srgb, srgb_to_linear
 from dofsynth.train.checkpoint import CHECKPOINT, load_model
@@ -28,6 +34,24 @@ from dofsynth.train.depth import predict_disparity
 from dofsynth.train.models import area_resize, bilinear
 
 _MODELS: dict = {}
+BAND_ROWS = 512  # rows per band of an upsampling's full-resolution part (memory: one band, not a frame)
+
+
+def for_inference(model: nn.Module) -> nn.Module:
+    """A copy of an eval-mode model for inference: each convolution followed by batch
+    normalisation becomes one convolution with the normalisation folded in (the same function
+    up to float rounding), ReLUs work in place, and tensors use channels-last memory (the
+    layout oneDNN convolves fastest on CPU). Training and checkpoints use the model as it is."""
+    model = copy.deepcopy(model).eval()
+    for seq in [m for m in model.modules() if isinstance(m, nn.Sequential)]:
+        items = list(seq)
+        for i, (a, b) in enumerate(zip(items, items[1:])):
+            if isinstance(a, nn.Conv2d) and isinstance(b, nn.BatchNorm2d):
+                seq[i], seq[i + 1] = fuse_conv_bn_eval(a, b), nn.Identity()
+        for i, m in enumerate(seq):
+            if isinstance(m, nn.ReLU):
+                seq[i] = nn.ReLU(inplace=True)
+    return model.to(memory_format=torch.channels_last)
 
 
 def cached_model(run_dir: str | Path, device: str):
@@ -40,7 +64,8 @@ def cached_model(run_dir: str | Path, device: str):
     if key not in _MODELS:
         if len(_MODELS) >= 2:  # a depth run and a DoF run at most
             _MODELS.clear()
-        _MODELS[key] = load_model(path, device)
+        model, cfg = load_model(path, device)
+        _MODELS[key] = (for_inference(model), cfg)
     return _MODELS[key]
 
 
@@ -119,7 +144,8 @@ def render_with(model, cfg, image: np.ndarray, disp: np.ndarray, focus: float, a
     device = next(model.parameters()).device
 
     net_in = linear_to_srgb(image) if cfg.data.color == "srgb" else np.maximum(image, 0.0)
-    x = torch.from_numpy(np.ascontiguousarray(net_in.transpose(2, 0, 1)))[None].to(device)
+    # (H, W, 3) as a (1, 3, H, W) channels-last view: the model's layout, no copy
+    x = torch.from_numpy(np.ascontiguousarray(net_in, dtype=np.float32)).permute(2, 0, 1)[None].to(device)
     d = torch.from_numpy(np.ascontiguousarray(disp))[None, None].to(device)
     h, w = image.shape[:2]
     low_side = cfg.infer.low_res_side
@@ -131,7 +157,7 @@ def render_with(model, cfg, image: np.ndarray, disp: np.ndarray, focus: float, a
     sizes = inference_sizes(work, low_side)
     signed_lo = (area_resize(d, sizes[0]) - focus) * aperture
     with torch.inference_mode():
-        _, out = model(x, signed_lo, sizes=sizes)
+        _, out = model(x, signed_lo, sizes=sizes, rows=BAND_ROWS)
         out = area_resize(out, (h, w)).float()
     out = out[0].permute(1, 2, 0).cpu().numpy()
     if cfg.data.color == "srgb":

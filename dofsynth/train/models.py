@@ -180,11 +180,26 @@ class GuidedUpsampler(nn.Module):
         self.high = nn.Sequential(block(3, width, norm), block(width, width, norm))
         self.fuse = nn.Sequential(block(2 * width, width, norm), nn.Conv2d(width, 1, 1))
 
-    def forward(self, image_lo, result_lo, signed_lo, image_hi):
-        size = image_hi.shape[-2:]
-        low = bilinear(self.low(torch.cat([image_lo, result_lo, signed_lo], dim=1)), size)
-        m_l = torch.sigmoid(self.fuse(torch.cat([low, self.high(image_hi)], dim=1)))
-        return (1 - m_l) * image_hi + m_l * bilinear(result_lo, size)
+    def forward(self, image_lo, result_lo, signed_lo, image_hi, rows: int | None = None):
+        """rows: the high-res convolutions in bands of that many rows (the same values up to
+        float rounding; their intermediates for one band instead of a frame each)."""
+        size = tuple(image_hi.shape[-2:])
+        low = self.low(torch.cat([image_lo, result_lo, signed_lo], dim=1))
+        if rows is None or rows >= size[0]:
+            m_l = torch.sigmoid(self.fuse(torch.cat([bilinear(low, size), self.high(image_hi)], dim=1)))
+            return (1 - m_l) * image_hi + m_l * bilinear(result_lo, size)
+        low, res = bilinear(low, size), bilinear(result_lo, size)
+        out = torch.empty_like(image_hi)
+        for r0 in range(0, size[0], rows):
+            r1 = min(r0 + rows, size[0])
+            a, b = max(r0 - HIGH_REACH, 0), min(r1 + HIGH_REACH, size[0])  # the rows its convs reach
+            m_l = torch.sigmoid(self.fuse(torch.cat([low[:, :, a:b], self.high(image_hi[:, :, a:b])], dim=1)))
+            m_l = m_l[:, :, r0 - a:r1 - a]
+            out[:, :, r0:r1] = (1 - m_l) * image_hi[:, :, r0:r1] + m_l * res[:, :, r0:r1]
+        return out
+
+
+HIGH_REACH = 3  # rows of the high-res image one output row of the upsampler depends on (three 3x3 convs)
 
 
 class DeepLensNet(nn.Module):
@@ -193,7 +208,8 @@ class DeepLensNet(nn.Module):
     image: (B, 3, H, W) high-res all-in-focus image. signed_lo: (B, 1, h, w) signed disparity at
     the lowest size of `size_chain((H, W), steps)`, or of `sizes` (lowest to (H, W)) if given. image_lo: optional (B, 3, h, w) low-res image
     (else area-downsampled here). Returns L (B, 3, h, w), the lens blur at low resolution, and
-    H (B, 3, H, W) after `steps` guided x2 upsamplings.
+    H (B, 3, H, W) after `steps` guided x2 upsamplings. rows: the upsamplings' high-res part in
+    bands of that many rows (inference at large sizes; `GuidedUpsampler.forward`).
     """
 
     def __init__(self, cfg: ModelConfig):
@@ -204,7 +220,8 @@ class DeepLensNet(nn.Module):
         self.up = GuidedUpsampler(cfg.up_width, cfg.up_depth, cfg.norm)
 
     def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
-                image_lo: torch.Tensor | None = None, *, sizes: list | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                image_lo: torch.Tensor | None = None, *, sizes: list | None = None,
+                rows: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         if sizes is None:
             sizes = size_chain(tuple(image.shape[-2:]), steps)
         if tuple(sizes[-1]) != tuple(image.shape[-2:]):
@@ -219,7 +236,7 @@ class DeepLensNet(nn.Module):
         result = low
         for k in range(steps):
             signed_k = bilinear(signed_lo, sizes[k])
-            result = self.up(pyramid[k], result, signed_k, pyramid[k + 1])
+            result = self.up(pyramid[k], result, signed_k, pyramid[k + 1], rows=rows)
         return low, result
 
 

@@ -1,0 +1,96 @@
+"""`render --model` inference: CPU time, wall time and peak memory at 1024 and 2048 px, each size
+in a fresh process (its own peak RSS), with the model as `dofsynth render --model` runs it
+(`dofsynth.train.infer.for_inference`, bands of BAND_ROWS rows) and as trained (the plain
+module, whole frames), and the largest difference between the two results.
+
+    .venv/bin/python benchmarks/infer.py [--config recipes/train-deeplens.toml] [--threads 2]
+
+Random weights of the config's model (batch normalisation given random statistics, so folding
+it is exercised); a random photo and a left-to-right disparity ramp, focus 0.5. Peak RSS is the
+process's maximum (`ru_maxrss`), model, photo and result included.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def measure(config: str, side: int, threads: int, prepared: bool) -> dict:
+    """One render in this process: {"cpu", "wall", "peak_mib", "out"} (out: the result)."""
+    import resource
+    import time
+
+    import numpy as np
+    import torch
+    from torch import nn
+
+    from dofsynth.train import infer
+    from dofsynth.train.config import load
+    from dofsynth.train.models import DeepLensNet
+
+    torch.set_num_threads(threads)
+    cfg = load(config)
+    torch.manual_seed(0)
+    model = DeepLensNet(cfg.model).eval()
+    for m in model.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.1, 0.1), m.running_var.uniform_(0.5, 1.5), m.weight.data.uniform_(0.8, 1.2)
+    if prepared:
+        model = infer.for_inference(model)
+    else:
+        infer.BAND_ROWS = None  # the whole frame at every step
+    rng = np.random.default_rng(0)
+    image = rng.random((side, side, 3), dtype=np.float32)
+    disparity = np.tile(np.linspace(0, 1, side, dtype=np.float32), (side, 1))
+    infer.render_with(model, cfg, image[:64, :64], disparity[:64, :64], 0.5)  # warm up
+    t, w = time.process_time(), time.perf_counter()
+    out = infer.render_with(model, cfg, image, disparity, 0.5)
+    return {"cpu": time.process_time() - t, "wall": time.perf_counter() - w,
+            "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "out": out}
+
+
+def _child(config: str, side: int, threads: int, prepared: bool, save: str) -> dict:
+    code = ("import sys, json, numpy as np; sys.path.insert(0, sys.argv[1]); import infer as b; "
+            "r = b.measure(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == '1'); "
+            "np.save(sys.argv[6], r.pop('out')); print(json.dumps(r))")
+    res = subprocess.run([sys.executable, "-c", code, str(ROOT / "benchmarks"), config, str(side), str(threads),
+                          "1" if prepared else "0", save], capture_output=True, text=True, cwd=ROOT)
+    if res.returncode:
+        raise SystemExit(res.stderr[-3000:])
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None) -> int:
+    import tempfile
+
+    import numpy as np
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", default=str(ROOT / "recipes" / "train-deeplens.toml"))
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048])
+    args = ap.parse_args(argv)
+    print(f"| size | model | CPU s | wall s | peak MiB | max difference |\n|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for side in args.sizes:
+            rows = {}
+            for prepared in (False, True):
+                save = str(Path(tmp) / f"{side}-{int(prepared)}.npy")
+                rows[prepared] = (_child(args.config, side, args.threads, prepared, save), np.load(save))
+            diff = float(np.abs(rows[True][1] - rows[False][1]).max())
+            for prepared, name in ((False, "as trained, whole frames"), (True, "render --model (for_inference, bands)")):
+                r = rows[prepared][0]
+                print(f"| {side} | {name} | {r['cpu']:.2f} | {r['wall']:.2f} | {r['peak_mib']:.0f} | "
+                      f"{diff:.1e} |" if prepared else f"| {side} | {name} | {r['cpu']:.2f} | {r['wall']:.2f} | "
+                      f"{r['peak_mib']:.0f} | |", flush=True)
+    print(f"({args.threads} threads; CPU s: process time of one render; peak: the process's maximum RSS)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
