@@ -387,6 +387,17 @@ def _long_recipe(recipe_path, tmp_path) -> Path:
     return long
 
 
+def _holds_stop_signals(pid: int) -> bool:
+    """Whether process `pid` blocks or catches both SIGINT and SIGTERM (/proc/PID/status)."""
+    try:
+        fields = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines() if ":" in line)
+    except OSError:
+        return False
+    held = int(fields.get("SigBlk", "0").strip(), 16) | int(fields.get("SigCgt", "0").strip(), 16)
+    want = (1 << (signal.SIGINT - 1)) | (1 << (signal.SIGTERM - 1))
+    return held & want == want
+
+
 def _session_run(*args) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "dofsynth", *map(str, args)], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True,
@@ -417,9 +428,13 @@ def test_a_parent_killed_at_any_start_up_phase_leaves_no_process(recipe_path, tm
 @pytest.mark.parametrize("sig,rc,word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
 def test_an_early_signal_ends_the_run_with_one_line(recipe_path, tmp_path, delay, sig, rc, word):
     """Ctrl-C or SIGTERM while the command line still imports its commands, builds the library
-    or starts workers: one line, exit 130 / 143, no traceback."""
+    or starts workers: one line, exit 130 / 143, no traceback. `delay` counts from dofsynth's
+    first line (the entry point holds both signals from there): before it the interpreter is
+    still starting, where no program can handle a signal, and that can take long on a busy
+    machine."""
     proc = _session_run("generate", _long_recipe(recipe_path, tmp_path), "--out", tmp_path / "out", "--quiet",
                         "--workers", "2")
+    assert _until(lambda: _holds_stop_signals(proc.pid), 120), "dofsynth never started"
     time.sleep(delay)
     os.killpg(proc.pid, sig)
     got, err = _ended(proc)
