@@ -75,7 +75,8 @@ def test_pixels_are_what_the_format_says(setup):
     planes = _blur_planes(layers, hl)
     ap = aperture_from_dict(scene.aperture.to_dict())
     for i, t in enumerate(scene.targets):
-        want = linear_to_srgb8(unboost(_frame(render_planes(planes, t.focus, t.max_coc, ap), layers), **hl))
+        want = linear_to_srgb8(unboost(_frame(render_planes(planes, t.focus, t.max_coc, ap, margin=layers.margin),
+                                              layers), **hl))
         assert np.array_equal(to_uint8(d["dof"][i]), want)
 
 
@@ -281,10 +282,10 @@ def test_longitudinal_chromatic_aberration_scales_each_channels_coc():
     planes = _blur_planes(layers, hl)
     ap = aperture_from_dict(scene.aperture.to_dict())
     t = scene.targets[0]
-    mixed = np.stack([_frame(render_planes(planes, t.focus, t.max_coc * s, ap), layers)[:, :, ch]
+    mixed = np.stack([_frame(render_planes(planes, t.focus, t.max_coc * s, ap, margin=layers.margin), layers)[:, :, ch]
                       for ch, s in enumerate((0.8, 1.0, 1.25))], axis=2)
     assert np.array_equal(to_uint8(d["dof"][0]), linear_to_srgb8(unboost(mixed, **hl)))
-    same = _frame(render_planes(planes, t.focus, t.max_coc, ap), layers)
+    same = _frame(render_planes(planes, t.focus, t.max_coc, ap, margin=layers.margin), layers)
     assert not np.array_equal(mixed[:, :, 0], same[:, :, 0])      # red really is defocused differently
     plain = sample_scene(recipe_from_text(base, "smoke.toml", root), library, "train", 1)
     assert "chromatic" not in plain.to_dict()["options"]

@@ -49,7 +49,8 @@ class RenderOptions:
     samples: int | None = None
     cells: int = 1
     cat_eye: float = 0.0
-    margin: int = 0  # px of the planes past the frame on each side: cat-eye is measured on the frame
+    margin: int = 0  # px the planes go on past the frame on each side: cat-eye is measured on the
+    #                  frame, and the layered method computes only it (the rest of its result is 0)
 
     def __post_init__(self):
         if not (math.isfinite(self.level_step) and self.level_step > 0):
@@ -88,7 +89,7 @@ class Method:
 
 
 METHODS: dict[str, Method] = {
-    "layered": Method(render_layered, "layered-v5", ("level_step", "level_ratio"),
+    "layered": Method(render_layered, "layered-v5", ("level_step", "level_ratio", "margin"),
                       summary="each plane blurred on its own and composited back to front (fast)"),
     "subaperture": Method(render_subaperture, "subaperture-v4", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
                           summary="the aperture cut into cells x cells parts, layered per part: shows what "

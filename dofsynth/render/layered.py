@@ -37,14 +37,17 @@ from dofsynth.render.planes import alpha_box
 LEVEL_RATIO = 1.0 / 32.0
 
 
-def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
+def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost, margin: int = 0) -> None:
     """Blur a constant-CoC plane over its alpha box and composite it "over" `acc` (3, H, W),
     one channel at a time: the blurred alpha first, then each premultiplied colour."""
     _, H, W = acc.shape
     s = support_radius(c)
     # the frame for the backmost plane (its box), else the alpha box; edge-replicated S px
-    # beyond each frame edge it touches; its blur lands in O
-    (gy0, gy1, gx0, gx1), (oy0, oy1, ox0, ox1) = cutout_regions(box, s, H, W)
+    # beyond each frame edge it touches; its blur lands in O (`kept_regions` when the planes go
+    # on past the part of the result that is kept)
+    (gy0, gy1, gx0, gx1), (oy0, oy1, ox0, ox1) = kept_regions(box, s, H, W, margin)
+    if oy1 <= oy0 or ox1 <= ox0:
+        return
     h, w = gy1 - gy0, gx1 - gx0
     conv = Convolver(c, aperture, h, w)
     if backmost:  # acc is still black: add the blur straight into it, tile by tile
@@ -54,7 +57,7 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
                 grab(rgb[:, :, ch], gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True, out)
                 if not one:
                     out *= grab(alpha, gy0 + y0, gy0 + y1, gx0 + x0, gx0 + x1, True)
-            conv.add_into(tile, acc[ch], gy0 - s, gx0 - s)
+            conv.add_into(tile, acc[ch, oy0:oy1, ox0:ox1], gy0 - s - oy0, gx0 - s - ox0)
         return
     # a cutout: acc *= 1 - blur(alpha), then acc += blur(colour * alpha), over O (the blurs
     # are added straight into acc, tile by tile)
@@ -66,7 +69,7 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost) -> None:
         acc[ch, oy0:oy1, ox0:ox1] *= keep
         src = grab(rgb[:, :, ch], gy0, gy1, gx0, gx1, True)
         conv.add_into(lambda y0, y1, x0, x1, out: np.multiply(src[y0:y1, x0:x1], a_src[y0:y1, x0:x1], out=out),
-                      acc[ch], gy0 - s, gx0 - s)
+                      acc[ch, oy0:oy1, ox0:ox1], gy0 - s - oy0, gx0 - s - ox0)
 
 
 def level_grid(cmin: float, cmax: float, level_step: float, level_ratio: float = 0.0) -> np.ndarray:
@@ -113,7 +116,7 @@ MAX_SLOPE = 0.5  # |grad c| (px per px) the Jacobian weight uses at most: it sta
 
 
 def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, backmost, level_step,
-                       level_ratio) -> None:
+                       level_ratio, margin: int = 0) -> None:
     """Normalized level scatter of a plane with a disparity map, composited "over" `acc`.
 
     Work region: O, the output (the frame for the backmost plane, else the alpha box grown by
@@ -123,11 +126,14 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
     _, H, W = acc.shape
     cm = coc_radius(compact(np.asarray(dmap, dtype=np.float32)), focus, max_coc)
     smax = support_radius(max(abs(float(cm.min())), abs(float(cm.max()))))
+    kept = margin if margin >= smax else 0  # the result is kept only inside this margin
     if backmost:
-        oy0, oy1, ox0, ox1 = 0, H, 0, W
+        oy0, oy1, ox0, ox1 = kept, H - kept, kept, W - kept
     else:
-        oy0, oy1 = max(box[0] - smax, 0), min(box[1] + smax, H)
-        ox0, ox1 = max(box[2] - smax, 0), min(box[3] + smax, W)
+        oy0, oy1 = max(box[0] - smax, kept), min(box[1] + smax, H - kept)
+        ox0, ox1 = max(box[2] - smax, kept), min(box[3] + smax, W - kept)
+    if oy1 <= oy0 or ox1 <= ox0:
+        return
     ey0, ey1, ex0, ex1 = oy0 - smax, oy1 + smax, ox0 - smax, ox1 + smax
     he, we = ey1 - ey0, ex1 - ex0
     iy = np.clip(np.arange(ey0, ey1), 0, H - 1) if cm.shape[0] > 1 else np.zeros(1, np.intp)
@@ -232,6 +238,16 @@ def plane_box(plane, alpha: np.ndarray):
     return None if inner is None else (by0 + inner[0], by0 + inner[1], bx0 + inner[2], bx0 + inner[3])
 
 
+def kept_regions(box, s: int, H: int, W: int, margin: int = 0):
+    """`cutout_regions`, or, when the planes go on `margin` >= s px past the part of the result
+    that is kept: the box itself as input (nothing beyond the planes reaches what is kept) and
+    its blur footprint clipped to that part."""
+    if margin < s or margin == 0:
+        return cutout_regions(box, s, H, W)
+    y0, y1, x0, x1 = box
+    return (y0, y1, x0, x1), (max(y0 - s, margin), min(y1 + s, H - margin), max(x0 - s, margin), min(x1 + s, W - margin))
+
+
 def cutout_regions(box, s: int, H: int, W: int):
     """For a cutout's alpha box and a kernel of support radius s: the input box G (the alpha
     box, edge-replicated s px beyond each frame edge it touches) and the output box O (G's
@@ -245,7 +261,8 @@ def cutout_regions(box, s: int, H: int, W: int):
 def render_layered(planes, focus: float, max_coc: float, aperture, options) -> np.ndarray:
     """The layered render of validated planes (back to front): linear RGB (3, H, W) float32,
     the premultiplied composite over black. `options`: a dofsynth.render.RenderOptions (its
-    level_step and level_ratio)."""
+    level_step and level_ratio; its `margin`: the planes go on that many px past the part of
+    the result the caller keeps, which is then all that is computed: the rest stays 0)."""
     H, W = planes[0].shape
     acc = np.zeros((3, H, W), dtype=np.float32)  # planar: contiguous per-channel updates
     for i, plane in enumerate(planes):
@@ -257,8 +274,9 @@ def render_layered(planes, focus: float, max_coc: float, aperture, options) -> n
             continue
         d = plane.constant_disparity()
         if d is not None:
-            _composite_constant(acc, rgb, alpha, box, coc_radius(d, focus, max_coc), aperture, backmost)
+            _composite_constant(acc, rgb, alpha, box, coc_radius(d, focus, max_coc), aperture, backmost,
+                                options.margin)
         else:
             _composite_varying(acc, rgb, alpha, plane.disparity_map(), box, max_coc, focus, aperture,
-                               backmost, options.level_step, options.level_ratio)
+                               backmost, options.level_step, options.level_ratio, options.margin)
     return acc

@@ -117,9 +117,10 @@ def render_look(planes: list[Plane], focus: float, max_coc: float, aperture: Ape
                 margin: int = 0) -> np.ndarray:
     """Planar (3, H, W) float32 render of prepared planes (`prepare_planes`), not yet restored:
     with chromatic aberration channel ch is the render at max_coc * chromatic[ch]. `margin`: px
-    of the planes past the frame on each side (the frame is what cat-eye is measured on)."""
+    the planes go on past the frame on each side; only the frame of the result is meant (what
+    cat-eye is measured on; the layered method computes nothing else)."""
     scales, kw = look.chromatic, look.keywords()
-    if margin and look.cat_eye:
+    if margin and "margin" in METHODS[look.method].options:  # (a method that does not read it renders all)
         kw["margin"] = int(margin)
     img = render_planes(planes, float(focus), float(max_coc) * scales[1], aperture, planar=True, **kw)
     for ch in (0, 2):

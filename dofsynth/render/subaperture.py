@@ -15,7 +15,7 @@ number of cells that meet the aperture times the layered method's (docs/renderin
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import cv2
@@ -130,6 +130,12 @@ def _cat_eye_grid(cell: Cell, shape: tuple[int, int], strength: float, margin: i
     return coarse
 
 
+def whole(options):
+    """`options` for a layered render of every pixel: the composite per cell takes gradients
+    across the whole frame, so no part of it may be left out (RenderOptions.margin)."""
+    return replace(options, margin=0) if options.margin else options
+
+
 def _p_gradient(x: np.ndarray, c) -> np.ndarray:
     """(2, ...) d/dp_x, d/dp_y of a plane seen through aperture point p, from its image x
     (..., H, W) and its CoC c (px; a number or a map broadcasting to (H, W)): it moves by p c,
@@ -199,12 +205,12 @@ def _blur_back(plane, focus: float, max_coc: float, cell: Cell, options, H: int,
     c = None if d is None else coc_radius(d, focus, max_coc)
     s = 0 if c is None else support_radius(c)
     if s == 0:
-        return render_layered([plane], focus, max_coc, cell, options)
+        return render_layered([plane], focus, max_coc, cell, whole(options))
     ks, (ky0, kx0, ky1, kx1) = _cell_kernels(cell, c)
     # frame pixel Y sees input rows Y + s - ky1 + 1 .. Y + s - ky0 (edge-replicated): the valid part
     y0, y1, x0, x1 = s + 1 - ky1, H + s - ky0, s + 1 - kx1, W + s - kx0
     if not stack_fits(y1 - y0, x1 - x0, 1, 1):  # a valid-mode FFT is the input's size
-        return render_layered([plane], focus, max_coc, cell, options)
+        return render_layered([plane], focus, max_coc, cell, whole(options))
     rgb, alpha = np.asarray(plane.rgb, np.float32), np.asarray(plane.alpha, np.float32)
     src = np.empty((3, y1 - y0, x1 - x0), np.float32)
     for ch in range(3):
@@ -220,8 +226,8 @@ def _blur_varying_cutout(plane, focus: float, max_coc: float, cell: Cell, option
     clear = Plane(np.zeros((H, W, 3), np.float32), np.zeros((H, W), np.float32), 0.0)
     ones = Plane(np.broadcast_to(np.ones(3, np.float32), (H, W, 3)), plane.alpha, plane.disparity, plane.box)
     out = np.zeros((6, H, W), np.float32)
-    out[:3] = render_layered([clear, plane], focus, max_coc, cell, options)
-    out[3] = render_layered([clear, ones], focus, max_coc, cell, options)[0]
+    out[:3] = render_layered([clear, plane], focus, max_coc, cell, whole(options))
+    out[3] = render_layered([clear, ones], focus, max_coc, cell, whole(options))[0]
     return (0, H, 0, W), out
 
 
