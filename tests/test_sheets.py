@@ -207,3 +207,25 @@ def test_reader_picks_exactly_the_asked_samples(smoke_set):
     assert set(got[keys[0]]) == {"json", "aif.png", "depth.exr", "cover.png", "dof.0.png", "dof.1.png"}
     with pytest.raises(ValueError, match="train-0000042"):
         ds.read_members_many(smoke_set, "train", ["train-0000042"])
+
+
+def test_a_set_with_dual_pixel_views_shows_them_beside_the_targets(tmp_path):
+    """render.members dual_pixel and cat-eye: the sheet has two more columns, target 0 through
+    the left and the right half of the aperture, and the labels name the method's options."""
+    text = (ROOT / "recipes" / "smoke.toml").read_text()
+    text = re.sub(r"(?m)^\[render\]$", '[render]\nmethod = "subaperture"\ncells = 2\ncat_eye = 0.5\n'
+                  'members = ["dual_pixel"]', text)
+    recipe = tmp_path / "dp.toml"
+    recipe.write_text(text)
+    out = tmp_path / "set"
+    assert main(["generate", str(recipe), "--out", str(out), "-q", "--limit", "2", "--split", "train"]) == 0
+    path = sheets.write_sheet(out, split="train", n=2, path=tmp_path / "s.png")
+    img = np.round(read_image(path) * 255).astype(np.uint8)
+    samples = ds.read_samples(out, "train", sheets.choose_keys(ds.load(out), "train", 2, 0))
+    lay = sheets.sheet_layout(2, 2, (64, 64), 192, n_views=2)
+    assert img.shape == (lay.height, lay.width, 3) and lay.columns[-2:] == sheets.VIEW_COLUMNS
+    for row, s in enumerate(samples):
+        for i, name in enumerate(sheets.VIEW_MEMBERS):
+            tile = _crop(img, lay.tile(row, 5 + i)).astype(int)
+            assert np.abs(tile - resize(to_rgb8(s["optional"][name]), 192, 192).astype(int)).max() <= 1
+    assert "cat_eye 0.5" in sheets.tile_labels(samples[0])[3]

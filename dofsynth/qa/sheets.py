@@ -42,16 +42,17 @@ class SheetLayout:
     caption_h: int = 22       # sample key and assets, above each row
     label_h: int = 20         # under each tile
     row_gap: int = 10
+    n_views: int = 0          # target 0's dual-pixel views (left, right) where the set holds them
 
     @property
     def columns(self) -> list[str]:
         return ["all-in-focus", "disparity (0 far, 1 near)", "coverage"] + [
-            f"DoF target {i}" for i in range(self.n_targets)]
+            f"DoF target {i}" for i in range(self.n_targets)] + VIEW_COLUMNS[:self.n_views]
 
     @property
     def column_widths(self) -> list[int]:
         disp = self.thumb_w + self.bar_gap + self.bar_w + self.tick_w
-        return [self.thumb_w, disp, self.thumb_w] + [self.thumb_w] * self.n_targets
+        return [self.thumb_w, disp, self.thumb_w] + [self.thumb_w] * (self.n_targets + self.n_views)
 
     @property
     def column_x(self) -> list[int]:
@@ -95,12 +96,18 @@ class SheetLayout:
         return self.pad, self.row_y(row), self.width - 2 * self.pad, self.caption_h
 
 
-def sheet_layout(n_rows: int, n_targets: int, size_hw: tuple[int, int], thumb: int = 192) -> SheetLayout:
-    """The layout for `n_rows` samples of size (H, W) with `n_targets` DoF targets each:
-    tiles are `thumb` pixels high and keep the aspect ratio."""
+VIEW_COLUMNS = ["target 0, left half", "target 0, right half"]
+VIEW_MEMBERS = ("dp.0.left.png", "dp.0.right.png")  # their members (render.members dual_pixel)
+
+
+def sheet_layout(n_rows: int, n_targets: int, size_hw: tuple[int, int], thumb: int = 192,
+                 n_views: int = 0) -> SheetLayout:
+    """The layout for `n_rows` samples of size (H, W) with `n_targets` DoF targets each (and
+    `n_views` dual-pixel views of target 0): tiles are `thumb` pixels high and keep the aspect
+    ratio."""
     h, w = size_hw
     thumb_w = max(8, int(round(thumb * w / h)))
-    return SheetLayout(n_rows=n_rows, n_targets=n_targets, thumb_w=thumb_w, thumb_h=int(thumb))
+    return SheetLayout(n_rows=n_rows, n_targets=n_targets, thumb_w=thumb_w, thumb_h=int(thumb), n_views=n_views)
 
 
 # ---------------------------------------------------------------- labels
@@ -130,7 +137,11 @@ def tile_labels(sample: dict) -> list[str]:
         f"f0 {_fmt(rec['front']['disparity'])}  f1 {_fmt(rec['middle']['disparity'])}  {bg_text}",
         f"red front {100 * np.mean(cover[:, :, 0] > 0.5):.0f}%  green middle {100 * np.mean(cover[:, :, 1] > 0.5):.0f}%",
     ]
-    labels += [f"focus {_fmt(t['focus'])}  max CoC {_fmt(t['max_coc'], 1)}px" for t in rec["targets"]]
+    opts = rec.get("options", {})
+    look = "".join(f"  {k} {opts[k]:g}" for k in ("cells", "cat_eye") if opts.get(k))
+    labels += [f"focus {_fmt(t['focus'])}  max CoC {_fmt(t['max_coc'], 1)}px{look}" for t in rec["targets"]]
+    if all(m in sample.get("optional", {}) for m in VIEW_MEMBERS):
+        labels += ["left half of the aperture", "right half: the two add up to target 0"]
     return labels
 
 
@@ -140,7 +151,8 @@ def render_sheet(samples: list[dict], thumb: int = 192, title: str | None = None
     if not samples:
         raise ValueError("render_sheet: no samples to show")
     n_targets = max(len(s["dof"]) for s in samples)
-    lay = sheet_layout(len(samples), n_targets, samples[0]["depth"].shape, thumb)
+    views = any(all(m in s.get("optional", {}) for m in VIEW_MEMBERS) for s in samples)
+    lay = sheet_layout(len(samples), n_targets, samples[0]["depth"].shape, thumb, len(VIEW_MEMBERS) if views else 0)
     sheet = np.empty((lay.height, lay.width, 3), np.uint8)
     sheet[:] = BG
     if title:
@@ -180,7 +192,14 @@ def _draw_row(sheet: np.ndarray, lay: SheetLayout, row: int, s: dict) -> None:
     _paste(sheet, coverage_overlay(resize(aif, tw, th), cover), lay.tile(row, 2))
     for i, dof in enumerate(s["dof"]):
         _paste(sheet, resize(to_rgb8(dof), tw, th), lay.tile(row, 3 + i))
-    for col, text in enumerate(tile_labels(s)):
+    optional = s.get("optional", {})
+    if lay.n_views and all(m in optional for m in VIEW_MEMBERS):
+        for i, name in enumerate(VIEW_MEMBERS):
+            _paste(sheet, resize(to_rgb8(optional[name]), tw, th), lay.tile(row, 3 + lay.n_targets + i))
+    labels = tile_labels(s)
+    if len(s["dof"]) < lay.n_targets and len(labels) > 3 + len(s["dof"]):  # views after a short row's targets
+        labels = labels[:3 + len(s["dof"])] + [""] * (lay.n_targets - len(s["dof"])) + labels[3 + len(s["dof"]):]
+    for col, text in enumerate(labels):
         x, y, w, h = lay.label(row, col)
         put_text(sheet, text, x, y + 4, DIM, 0.4, max_width=w)
 
