@@ -66,7 +66,7 @@ class SampleRender:
         if not m:
             return img
         h, w = self.scene.size
-        return np.ascontiguousarray(img[:, m:m + h, m:m + w])
+        return img[:, m:m + h, m:m + w]  # a view: the encoders read it row block by row block
 
     def target(self, n: int) -> np.ndarray:
         """Target n (3, H, W), restored: the same whether dual-pixel views are asked for or not."""
