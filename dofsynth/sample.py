@@ -110,6 +110,8 @@ def render_sample(scene: Scene, library: AssetLibrary) -> dict[str, bytes]:
 
 def focus_sweep(scene: Scene, library: AssetLibrary, focuses, max_coc: float | None = None) -> dict[str, bytes]:
     """The members of `scene` re-rendered with one target per focus value (at `max_coc`, by
-    default its first target's): `dof.N.png` is focus N. For QA pages (dofsynth.qa)."""
+    default its first target's): `dof.N.png` is focus N. For QA pages (dofsynth.qa). The planes
+    keep the sample's margin past the frame (so its own focus gives its target exactly); a focus
+    whose blur reaches further repeats their edges beyond it."""
     coc = float(scene.targets[0].max_coc if max_coc is None else max_coc)
     return render_sample(replace(scene, targets=tuple(Target(float(f), coc) for f in focuses)), library)
