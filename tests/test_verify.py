@@ -253,6 +253,11 @@ def test_schema_errors_are_named(smoke_set):
     assert "front.disparity: 1.5 is greater than the maximum of 1" in errs
     assert "size: [64] is too short" in errs
     assert any(e.startswith("background.mode: 'sky' is not one of") for e in errs)
+    older = json.loads(json.dumps(rec))   # a record of an older schema: one line that says so
+    older["schema_version"] = 4
+    del older["background"]["margin"], older["background"]["real"]
+    assert check_record_schema(older) == ["schema_version 4: made by an older dofsynth; this one checks schema 5 "
+                                          "(docs/FORMAT.md says what changed; such records still read and re-render)"]
     typed = json.loads(json.dumps(rec))   # schema 4: one JSON type per field, whatever the sample
     typed["front"]["anchored"] = ["bottom"]
     typed["excluded"] = None

@@ -14,6 +14,7 @@ from functools import lru_cache
 import jsonschema
 import numpy as np
 
+from dofsynth.codecs import SCHEMA_VERSION
 from dofsynth.compose import COVER_THRESHOLD
 from dofsynth.optics.aperture import APERTURES
 from dofsynth.record import record_schema
@@ -47,6 +48,10 @@ def check_record_schema(rec) -> list[str]:
     """Problems with a record against its JSON Schema (dofsynth/record.schema.json: keys, one
     JSON type per field, value ranges), then what a schema cannot say: numbers are finite, a
     ramp has a direction, the aperture is a registered kind."""
+    made = rec.get("schema_version") if isinstance(rec, dict) else None
+    if isinstance(made, int) and not isinstance(made, bool) and made < SCHEMA_VERSION:
+        return [f"schema_version {made}: made by an older dofsynth; this one checks schema {SCHEMA_VERSION} "
+                "(docs/FORMAT.md says what changed; such records still read and re-render)"]
     errs = [f"{_path(e)}: {e.message}" for e in sorted(_validator().iter_errors(rec), key=lambda e: list(e.absolute_path))]
     errs += [f"{p}: must be a finite number" for p in _non_finite(rec)]
     if errs or not isinstance(rec, dict):
