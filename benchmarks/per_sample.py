@@ -12,7 +12,8 @@ sample, the photos' estimated foregrounds cached on disk as in a second run). Ev
 warm-up sample (reported apart as `first`), then its share of the samples; the rounds
 interleave trees and cases, so a slow spell of a shared machine hits them all.
 
-Per sample, in that process's own CPU time (`time.process_time`, all threads):
+Each process is set up as a generation worker is (`setup_process`: one OpenCV thread, the
+workers' malloc settings). Per sample, in that process's own CPU time (`time.process_time`):
 - `sample`: draw the scene, render, encode the members and write them as a one-sample shard
   (`render_one` and `write_shard`, what a worker does per sample);
 - `floor`: what no renderer can avoid: decode the sample's asset files (built-in assets: their
@@ -100,9 +101,10 @@ def _floor(library, key: str, members: dict[str, bytes], folder: Path) -> float:
 def child(case: str, size: int, total: int, indices: list[int], warm: int) -> dict:
     """One process's measurements (run with the tree under test first on sys.path)."""
     from dofsynth.generate import render_one
-    from dofsynth.generate.worker import library_for
+    from dofsynth.generate.worker import library_for, setup_process
     from dofsynth.shards import write_shard
 
+    setup_process()  # as in a generation worker: one OpenCV thread, the workers' malloc settings
     recipe = _recipe(case, size, total)
     library = library_for(recipe)
     out = {"sample": [], "floor": []}

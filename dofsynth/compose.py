@@ -88,14 +88,22 @@ def beyond_frame(rgb: np.ndarray, crop, flip: bool, h: int, w: int, m: int) -> n
     sx, sy = cw / w, ch / h
     x0, x1 = max(0, math.floor(x - m * sx)), min(pw, math.ceil(x + cw + m * sx))
     y0, y1 = max(0, math.floor(y - m * sy)), min(ph, math.ceil(y + ch + m * sy))
-    part = resize(rgb[y0:y1, x0:x1], max(1, round((x1 - x0) / sx)), max(1, round((y1 - y0) / sy)))
+    window = rgb[y0:y1, x0:x1]
+    part_w, part_h = max(1, round((x1 - x0) / sx)), max(1, round((y1 - y0) / sy))
+    if flip:  # as `background_image`: flipped before resampling (in the flipped photo's columns)
+        window, x0, x = window[:, ::-1], pw - x1, pw - x - cw
+    part = resize(window, part_w, part_h)
     oy, ox = m + round((y0 - y) / sy), m + round((x0 - x) / sx)  # where the window lands on the canvas
     H, W = h + 2 * m, w + 2 * m
     ty0, tx0 = max(oy, 0), max(ox, 0)
     ty1, tx1 = min(oy + part.shape[0], H), min(ox + part.shape[1], W)
-    inner = np.ascontiguousarray(part[ty0 - oy:ty1 - oy, tx0 - ox:tx1 - ox])
-    canvas = cv2.copyMakeBorder(inner, ty0, H - ty1, tx0, W - tx1, cv2.BORDER_REPLICATE)
-    canvas = np.ascontiguousarray(canvas[:, ::-1]) if flip else canvas
+    canvas = np.empty((H, W, 3), np.float32)
+    canvas[ty0:ty1, tx0:tx1] = part[ty0 - oy:ty1 - oy, tx0 - ox:tx1 - ox]
+    # the photo's edge repeated where it ends: rows first, then columns (corners from both)
+    canvas[:ty0, tx0:tx1] = canvas[ty0, tx0:tx1]
+    canvas[ty1:, tx0:tx1] = canvas[ty1 - 1, tx0:tx1]
+    canvas[:, :tx0] = canvas[:, tx0:tx0 + 1]
+    canvas[:, tx1:] = canvas[:, tx1 - 1:tx1]
     return np.maximum(canvas, 0.0, out=canvas)
 
 
