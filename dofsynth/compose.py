@@ -8,6 +8,11 @@ fringes come from the transparent surround; an object placed at half its size or
 resampled from the level of its area-halved pyramid (`dofsynth.image.pyramid_level`) that is
 still at least the placed size, which the library caches (`AssetLibrary.premultiplied`).
 
+With `background.margin` m > 0 (every sample since schema 5) the planes are composed on a canvas
+m px larger on every side (`SceneLayers.canvas`: the photo around the crop, the ramp continued,
+objects with their true extent and cut ones repeated past their cut line), which the targets are
+rendered from; the frame's planes, all-in-focus image, depth and coverages are its frame part.
+
 `SceneLayers.disparity` is, at each pixel, the disparity of the front-most plane whose alpha is
 >= 0.5 there (the background's map where neither foreground reaches 0.5): the depth a
 depth sensor or a matting-free annotation would report.
@@ -18,7 +23,6 @@ import math
 import mmap
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
 
 from dofsynth.assets import Asset, AssetLibrary
