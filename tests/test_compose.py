@@ -303,3 +303,37 @@ def test_a_target_blurs_what_the_photo_holds_past_the_frame_edge(tmp_path, write
             worst = max(worst, int(np.abs(before - want)[band].max()))
             checked += 1
     assert checked >= 4 and worst > 40, (checked, worst)   # the edge copies were far off
+
+
+def test_the_canvas_continues_the_ramp_and_cut_objects_and_repeats_only_where_the_photo_ends():
+    """Past the frame: a ramp goes on linearly (clipped to [0, 1]); an object cut at its bottom
+    is repeated from its cut line down to the canvas edge, other sides are not; the photo's
+    own pixels fill the margin as far as `real_margin` says, its edge repeated beyond."""
+    from dofsynth.compose import beyond_frame, extend_cut_sides, ramp_beyond
+    from dofsynth.scene import BackgroundParams, real_margin
+
+    bgp = BackgroundParams(mode="ramp", b0=0.4, b1=0.25, direction="horizontal", crop=(0, 0, 8, 8), flip=False)
+    row = ramp_beyond(bgp, 6, 7, 3)[0]
+    assert row.shape == (13,) and np.allclose(row[3:10], np.linspace(0.4, 0.25, 7), atol=1e-6)
+    assert np.allclose(np.diff(row), -0.025, atol=1e-6)   # the same slope on past both edges
+    steep = ramp_beyond(replace(bgp, b0=1.0, b1=0.9, direction="vertical"), 4, 4, 50)[:, 0]
+    assert steep.max() == 1.0 and steep.min() >= 0.0 and steep[-1] == 1.0   # clipped; b0 at the bottom
+
+    rgb, alpha = np.zeros((20, 20, 3), np.float32), np.zeros((20, 20), np.float32)
+    alpha[5:12, 6:10] = 1.0
+    alpha[11, 6:10] = 0.5   # the cut line is soft
+    rgb[5:12, 6:10] = 0.7
+    extend_cut_sides(rgb, alpha, 6, 5, (4, 7), ("bottom",))
+    assert np.array_equal(alpha[12:, 6:10], np.full((8, 4), 0.5, np.float32)) and not alpha[:5].any()
+    assert not alpha[:, :6].any() and not alpha[:, 10:].any() and np.allclose(rgb[12:, 6:10], 0.7)
+
+    photo = np.random.default_rng(0).random((40, 60, 3)).astype(np.float32)
+    crop, m = (5, 30, 10, 10), 8   # 5 px of photo left of the crop, 0 below, scale 1
+    canvas = beyond_frame(photo, crop, False, 10, 10, m)
+    top, bottom, left, right = real_margin(crop, (60, 40), (10, 10), m, False)
+    assert (top, bottom, left, right) == (8, 0, 5, 8)
+    assert np.array_equal(canvas[m - top:m + 10, m - left:m + 10 + right], photo[30 - top:40, 5 - left:15 + right])
+    assert np.array_equal(canvas[m + 10:, m - left:m + 10 + right], np.broadcast_to(photo[39, :23], (m, 23, 3)))
+    assert np.array_equal(canvas[:, :m - left], np.broadcast_to(canvas[:, m - left:m - left + 1], (26, 3, 3)))
+    flipped = beyond_frame(photo, crop, True, 10, 10, m)
+    assert np.array_equal(flipped, canvas[:, ::-1])   # scale 1: flipping the window flips the canvas
