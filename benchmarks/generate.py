@@ -18,7 +18,7 @@ peak memory belongs to that case alone. Columns:
   interleaved; `runs` gives their range); `ratio`: for the built-in case its ratio to the
   first size, beside `px ratio`, the ratio of pixel counts (target: time grows no faster than
   the pixels); for the real photos, the ratio to the built-in case at the same size.
-- `peak MiB/worker`: largest `ru_maxrss` measured inside a worker (1- and 2-worker runs), against
+- `peak MiB/worker`: largest own peak RSS (VmHWM, `dofsynth.generate.worker.peak_rss_mb`) measured inside a worker (1- and 2-worker runs), against
   the 1.5 GB (1536 MiB) target.
 - `w=2 steady`: (s/sample per worker at w=1) / (s/sample per worker at w=2) * 2, the speed-up of
   2 workers without starting them (a few samples are too few to judge it end to end).

@@ -7,7 +7,7 @@ module, whole frames), and the largest difference between the two results.
 
 Random weights of the config's model (batch normalisation given random statistics, so folding
 it is exercised); a random photo and a left-to-right disparity ramp, focus 0.5. Peak RSS is the
-process's maximum (`ru_maxrss`), model, photo and result included.
+process's own maximum (VmHWM), model, photo and result included.
 """
 from __future__ import annotations
 
@@ -22,13 +22,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def measure(config: str, side: int, threads: int, prepared: bool) -> dict:
     """One render in this process: {"cpu", "wall", "peak_mib", "out"} (out: the result)."""
-    import resource
+
     import time
 
     import numpy as np
     import torch
     from torch import nn
 
+    from dofsynth.generate.worker import peak_rss_mb
     from dofsynth.train import infer
     from dofsynth.train.config import load
     from dofsynth.train.models import DeepLensNet
@@ -51,7 +52,7 @@ def measure(config: str, side: int, threads: int, prepared: bool) -> dict:
     t, w = time.process_time(), time.perf_counter()
     out = infer.render_with(model, cfg, image, disparity, 0.5)
     return {"cpu": time.process_time() - t, "wall": time.perf_counter() - w,
-            "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "out": out}
+            "peak_mib": peak_rss_mb(), "out": out}
 
 
 def _child(config: str, side: int, threads: int, prepared: bool, save: str) -> dict:

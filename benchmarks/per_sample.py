@@ -20,7 +20,7 @@ workers' malloc settings). Per sample, in that process's own CPU time (`time.pro
   pixels as PNG files) and encode the same members again with that tree's own codecs and
   settings (the same bytes), then write the shard.
 Columns: the mean over samples and its spread (standard deviation, min-max), the mean ratio
-sample / floor, the first (warm-up) sample, and the process's peak RSS (`ru_maxrss`, its own).
+sample / floor, the first (warm-up) sample, and the process's own peak RSS (VmHWM).
 """
 from __future__ import annotations
 
@@ -120,8 +120,17 @@ def child(case: str, size: int, total: int, indices: list[int], warm: int) -> di
             write_shard(folder / "s.tar", [(key, members)])
             out["sample"].append(time.process_time() - t)
             out["floor"].append(_floor(library, key, members, folder))
-    out["peak_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    out["peak_mib"] = _own_peak_mib()
     return out
+
+
+def _own_peak_mib() -> float:
+    """This process's own peak RSS (VmHWM: ru_maxrss would carry over its parent's through fork
+    and exec)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def _run_child(tree: Path, case: str, size: int, total: int, indices: list[int], warm: int) -> dict:

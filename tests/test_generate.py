@@ -415,3 +415,17 @@ def test_process_settings_do_not_change_the_bytes(recipe, reference, tmp_path):
                         "--split", "test", "--quiet"], env=env, check=True, capture_output=True)
         ref = {k: v for k, v in _files(reference[0]).items() if k.startswith("test/")}
         assert {k: v for k, v in _files(out).items() if k.startswith("test/")} == ref
+
+
+def test_the_reported_peak_memory_is_the_workers_not_the_callers(smoke_recipe, tmp_path):
+    """`GenerateResult.peak_rss_mb` is the largest peak of the processes that rendered: with
+    spawn workers, theirs, not the caller's (which here holds 200 MiB the workers never see)."""
+    import numpy as np
+
+    from dofsynth.generate import LocalExecutor
+    from dofsynth.generate.worker import peak_rss_mb
+
+    ballast = np.ones(200 * 2**20, np.uint8)   # touched: in this process's resident memory
+    res = generate(smoke_recipe, tmp_path / "out", executor=LocalExecutor(2, in_process=False), progress=False)
+    assert int(ballast[::4096].sum()) == ballast[::4096].size
+    assert 0 < res.peak_rss_mb < peak_rss_mb() - 150, (res.peak_rss_mb, peak_rss_mb())

@@ -27,7 +27,7 @@ from dofsynth.generate.folder import (OutputNotEmptyError, check_shared_folder, 
                                       remove_shard_temps, verify_existing)
 from dofsynth.generate.plan import ShardTask, plan_shards, plan_split, split_size
 from dofsynth.generate.locks import OutputLock, RangeLock
-from dofsynth.generate.worker import library_for, peak_rss_mb, portable, shard_usage
+from dofsynth.generate.worker import library_for, portable, shard_usage
 from dofsynth.manifest import build_manifest, with_bad_assets, write_manifest
 from dofsynth.manifest.card import write_card
 from dofsynth.manifest.names import MANIFEST_NAME, PROGRESS_NAME, part_name, progress_part_name
@@ -53,7 +53,7 @@ class GenerateResult:
     seconds: float = 0.0
     bytes: int = 0
     skipped_assets: list = field(default_factory=list)
-    peak_rss_mb: float = 0.0     # largest worker (or this process) peak resident memory
+    peak_rss_mb: float = 0.0     # largest peak resident memory of a process that rendered (0: none did)
     shard_seconds: float = 0.0   # time spent inside generate_shard, summed over workers
     executor: str = "local"
     shard_range: tuple[int, int] | None = None   # a --shards run: its range of the plan ...
@@ -122,7 +122,7 @@ def _make(recipe, out: Path, executor, tasks: list[ShardTask], todo: list[ShardT
             bar.update(now - shown.get(path, 0))
         shown[path] = now
 
-    peak, busy = peak_rss_mb(), 0.0
+    peak, busy = 0.0, 0.0  # over the processes that rendered (this one only when it rendered)
     try:
         if todo:
             for d in executor.run(recipe, out, todo, limits, on_samples=on_samples, worker_lock=worker_lock):

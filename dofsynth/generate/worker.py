@@ -118,8 +118,18 @@ def generate_shard(recipe, out, split: str, shard_index: int, *, limit: int | No
 
 
 def peak_rss_mb() -> float:
-    """This process's peak resident memory in MiB (ru_maxrss, KiB on Linux)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """This process's own peak resident memory in MiB: VmHWM of /proc/self/status on Linux
+    (ru_maxrss there carries over the parent's peak through fork and exec, so a spawn worker of
+    a large caller would report the caller's), else ru_maxrss."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    scale = 1024.0 * 1024.0 if sys.platform == "darwin" else 1024.0  # bytes on macOS, KiB elsewhere
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / scale
 
 
 # glibc malloc settings of a rendering process (mallopt parameter numbers from malloc.h). By
