@@ -14,7 +14,7 @@ and estimated foregrounds of ../shared/assets) at --real-sizes, with the per-wor
 of thousands). Every run uses fresh spawn worker processes (also for 1 worker), so a worker's
 peak memory belongs to that case alone. Columns:
 - `s/sample`: time inside `generate_shard` per sample with 1 worker (scene, layers, render,
-  encode, write): the steady-state cost per core, the median of --repeat runs (the cases
+  encode, write): the steady-state cost per core, the mean of --repeat runs (the cases
   interleaved; `runs` gives their range); `ratio`: for the built-in case its ratio to the
   first size, beside `px ratio`, the ratio of pixel counts (target: time grows no faster than
   the pixels); for the real photos, the ratio to the built-in case at the same size.
@@ -139,8 +139,8 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=int, default=4,
                     help="samples per run, the same ones at every size (default 4; even, so 2 workers share them)")
     ap.add_argument("--repeat", type=int, default=5,
-                    help="1-worker runs per size, the sizes interleaved; s/sample is their median (default 5: "
-                         "a slow spell of a shared machine rarely covers 3 of 5)")
+                    help="1-worker runs per size, the sizes interleaved; s/sample is their mean, the range shown (default 5: "
+                         "runs interleaved so a slow spell of a shared machine hits every case)")
     ap.add_argument("--real-sizes", type=int, nargs="*", default=[1024], metavar="SIZE",
                     help="sizes of the real-photo case, recipes/shared-assets.toml on ../shared/assets "
                          "(default 1024; none: skip it)")
@@ -182,12 +182,12 @@ def main(argv=None) -> int:
     first = args.sizes[0]
     print(f"{'case':<15} {'size':>5} {'n':>3} {'s/sample':>9} {'runs':>13} {'ratio':>6} {'px ratio':>8} "
           f"{'peak MiB/worker':>16} {'w=2 steady':>11}" + (f" {'floor s':>8}" if args.floor else ""), flush=True)
-    builtin = {size: statistics.median(per[i]) for i, (case, size, _, _) in enumerate(cases) if case == "built-in"}
+    builtin = {size: statistics.fmean(per[i]) for i, (case, size, _, _) in enumerate(cases) if case == "built-in"}
     for i, (case, size, recipe, env) in enumerate(cases):
         with tempfile.TemporaryDirectory() as tmp, _environ(env):
             w2 = run(recipe, Path(tmp) / "w2", 2)
             floor = io_floor(recipe, min(args.samples, 2), Path(tmp)) if args.floor else None
-        med = statistics.median(per[i])
+        med = statistics.fmean(per[i])
         ratio = med / builtin[first] if case == "built-in" else med / builtin.get(size, float("nan"))
         px = f"{(size / first) ** 2:8.2f}" if case == "built-in" else f"{'':8}"
         top = max(peak[i], w2.peak_rss_mb)
@@ -196,7 +196,8 @@ def main(argv=None) -> int:
         spread = f"{min(per[i]):.3f}-{max(per[i]):.3f}"
         print(f"{case:<15} {size:>5} {args.samples:>3} {med:>9.3f} {spread:>13} {ratio:>6.2f} {px} {top:>14.0f}{flag:2s} "
               f"{steady:>11.2f}" + (f" {floor:>8.3f}" if floor is not None else ""), flush=True)
-    print(f"(s/sample: median over --repeat 1-worker runs of the time inside generate_shard. ratio: built-in, to "
+    print(f"(s/sample: mean over --repeat 1-worker runs of the wall time inside generate_shard; CPU time per sample "
+          f"against the I/O floor: benchmarks/per_sample.py. ratio: built-in, to "
           f"{first} px (target: <= px ratio, time growing no faster than the pixel count); real, to built-in at "
           f"the same size. Peak target <= {TARGET_MIB} MiB per worker; '!' marks a case over it.)")
     if args.scaling:
