@@ -202,6 +202,44 @@ def test_inference_folds_and_bands_without_changing_the_result(norm, monkeypatch
     assert np.abs(render_with(fast, cfg, image, disparity, 0.4) - plain).max() < 1e-5
 
 
+def test_untouched_pixels_are_those_no_blur_reaches():
+    """A hand-computed case: one pixel of CoC 2.3 px (signed 0.23 at 10 px per unit) in a
+    sharp frame reaches 3 px around it (support radius 3); a pixel of 0.4 px reaches nothing."""
+    from dofsynth.train.models import untouched
+
+    signed = torch.zeros(1, 1, 15, 15)
+    signed[0, 0, 7, 7] = 0.23
+    signed[0, 0, 1, 1] = 0.04   # 0.4 px: sharp
+    free = untouched(signed, 10.0)[0, 0]
+    yy, xx = torch.meshgrid(torch.arange(15), torch.arange(15), indexing="ij")
+    near = torch.maximum((yy - 7).abs(), (xx - 7).abs()) <= 3
+    assert torch.equal(free, ~near)
+
+
+def test_the_output_is_the_input_where_no_blur_reaches():
+    """[model] identity: however the network is initialised, wherever no pixel's blur reaches
+    (here: all but a blurred square and its reach), the rendered photo is the input exactly."""
+    cfg = tiny_config(model={"coc_ref": 8.0}, infer={"low_res_side": 32})
+    torch.manual_seed(3)
+    model = DeepLensNet(cfg.model).eval()
+    rng = np.random.default_rng(2)
+    image = rng.random((96, 96, 3), dtype=np.float32)
+    disparity = np.full((96, 96), 0.5, np.float32)
+    disparity[40:50, 40:50] = 0.9   # out of focus: CoC 0.4 x 8 px x 96 / (32 x 2**levels) = 4.8 px
+    out = render_with(model, cfg, image, disparity, focus=0.5)
+    far = np.ones((96, 96), bool)
+    far[40 - 8:50 + 8, 40 - 8:50 + 8] = False   # 4.8 px of CoC reach 5.8 px at most
+    assert np.abs(out[far] - image[far]).max() < 1e-6   # (the sRGB round trip of the network's input)
+    assert np.abs(out[~far] - image[~far]).max() > 1e-3   # the network does act where there is blur
+    paper = render_with(DeepLensNet(replace_cfg(cfg, identity=False).model).eval(), cfg, image, disparity, focus=0.5)
+    assert np.abs(paper[far] - image[far]).max() > 1e-3   # the paper's network alone does not keep it
+
+
+def replace_cfg(cfg, **model):
+    from dofsynth.train.config import replace
+    return replace(cfg, "model", **model)
+
+
 class _FixedBlur(torch.nn.Module):
     """A lens-blur stand-in with a trained network's habit: a blur of a fixed size in low-res
     pixels (a Gaussian of sigma 3), whatever the photo's size."""
@@ -346,3 +384,23 @@ def test_two_processes_under_torchrun_train_together_and_rank0_writes(setup, tmp
     assert json.loads((run / "env.json").read_text())["world_size"] == 2
     assert checkpoint.load(run / "ckpt.pt")["step"] == 2
     assert [r["step"] for r in _rows(run)] == ["1", "2"]          # one writer
+
+
+def test_untouched_on_coarse_cells_is_conservative():
+    """With long blurs the reach is spread on cells of f x f px: never a pixel that a blur
+    reaches is called untouched (checked against the pixel-exact chessboard spread)."""
+    from dofsynth.train import models
+
+    rng = np.random.default_rng(5)
+    signed = torch.zeros(1, 1, 200, 170)
+    for _ in range(6):
+        y, x = int(rng.integers(200)), int(rng.integers(170))
+        signed[0, 0, y, x] = float(rng.uniform(0.3, 1.0))
+    fast = models.untouched(signed, 60.0)        # reach up to 61 px: cells of 4 px
+    c = signed.abs() * 60.0
+    reach = torch.where(c >= 0.5, c + 1.0, torch.zeros_like(c))
+    for _ in range(62):
+        reach = torch.maximum(reach, torch.nn.functional.max_pool2d(reach, 3, stride=1, padding=1) - 1.0)
+    exact = reach <= 0
+    assert not (fast & ~exact).any()                # nothing reached is called free
+    assert fast.sum() > 0.5 * exact.sum()           # and not much more is given up

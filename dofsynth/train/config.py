@@ -72,6 +72,8 @@ class ModelConfig:
     up_depth: int = key(0, lo=0)                            # U-Net levels of its low-res branch (0: two convs)
     coc_ref: float = key(0.0, lo=0.0)                       # r_max: max CoC radius (full-res px) of the largest
                                                             # aperture; 0 = the largest max_coc in the data
+    identity: bool = key(True)                              # the output is the input where no blur reaches (by
+                                                            # construction; false: the paper's network alone)
 
 
 @dataclass_kw

@@ -215,6 +215,15 @@ def _decode_crop(sample: dict, key: str, cfg: Config, rng, crop, target, augment
             "shard": str(sample.get("__url__", "")), "corruption": json.dumps(params, sort_keys=True)}
 
 
+def full_res_signed(b: dict, cfg) -> dict:
+    """The DeepLensNet keywords signed_hi (the signed disparity of the batch's corrupted
+    disparity at full resolution) and coc_px (r_max: full-resolution px per unit of it)."""
+    shape = (-1, 1, 1, 1)
+    focus = torch.as_tensor(b["focus"], dtype=torch.float32, device=b["disparity"].device).reshape(shape)
+    scale = torch.as_tensor(b["max_coc"], dtype=torch.float32, device=b["disparity"].device).reshape(shape)
+    return {"signed_hi": (b["disparity"] - focus) * scale / cfg.model.coc_ref, "coc_px": cfg.model.coc_ref}
+
+
 def finish_item(c: dict, cfg: Config) -> dict:
     """A `decode_crop` result as the float32 tensors of a training item."""
     s = 2 ** cfg.data.levels

@@ -39,7 +39,7 @@ from dofsynth.optics.aperture import aperture_from_dict
 from dofsynth.render.look import Look, render_photo
 from dofsynth.train.checkpoint import load_model
 from dofsynth.train.config import AugmentConfig, load
-from dofsynth.train.data import excluded, find_segments, raw_samples, sample_rng, training_item
+from dofsynth.train.data import excluded, find_segments, full_res_signed, raw_samples, sample_rng, training_item
 from dofsynth.train.depth import depth_errors, predict_disparity
 
 METHODS = ("network", "classical", "all-in-focus")
@@ -132,8 +132,10 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
             image = to_srgb(_hwc(item["image"]))
             band = edge_band(clean[: target.shape[0], : target.shape[1]], item["max_coc"])
             with torch.inference_mode():
-                _, high = model(item["image"][None].to(device), item["signed_lo"][None].to(device),
-                                cfg.data.levels, item["image_lo"][None].to(device))
+                one = {k: (v[None].to(device) if torch.is_tensor(v) else [v]) for k, v in item.items()
+                       if k in ("image", "signed_lo", "image_lo", "disparity", "focus", "max_coc")}
+                _, high = model(one["image"], one["signed_lo"], cfg.data.levels, one["image_lo"],
+                                **full_res_signed(one, cfg))
             outputs = {"network": to_srgb(_hwc(high[0])), "all-in-focus": image}
             if classical:
                 outputs["classical"] = classical_render(image, _hwc(item["disparity"])[:, :, 0], item["focus"],

@@ -156,8 +156,11 @@ def render_with(model, cfg, image: np.ndarray, disp: np.ndarray, focus: float, a
         x, d = bilinear(x, work), bilinear(d, work)
     sizes = inference_sizes(work, low_side)
     signed_lo = (area_resize(d, sizes[0]) - focus) * aperture
+    # px of CoC per unit of signed disparity at `work`: r_max at the training size (the lens
+    # blur's low resolution times 2**levels)
+    coc_px = cfg.model.coc_ref * max(work) / (low_side * 2 ** cfg.data.levels)
     with torch.inference_mode():
-        _, out = model(x, signed_lo, sizes=sizes, rows=BAND_ROWS)
+        _, out = model(x, signed_lo, sizes=sizes, rows=BAND_ROWS, signed_hi=(d - focus) * aperture, coc_px=coc_px)
         out = area_resize(out, (h, w)).float()
     out = out[0].permute(1, 2, 0).cpu().numpy()
     if cfg.data.color == "srgb":

@@ -38,7 +38,7 @@ from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
 from dofsynth.rng import stream_int
 from dofsynth.train import checkpoint
 from dofsynth.train.config import Config, from_dict, to_toml
-from dofsynth.train.data import from_workers, make_loader, resolve
+from dofsynth.train.data import from_workers, full_res_signed, make_loader, resolve
 from dofsynth.train.depth import depth_loss, depth_mae, load_backbone
 from dofsynth.train.depth_data import make_depth_loader
 from dofsynth.train.loss import deeplens_loss
@@ -116,7 +116,7 @@ def forward_loss(model, b: dict, cfg: Config):
         depth, seg = model(b["image"])
         loss, j_d, j_s = depth_loss(depth, seg, b, cfg.depth.gamma)
         return loss, {"loss_depth": j_d, "loss_seg": j_s}, depth_mae(depth, b)[b["has_depth"] > 0]
-    low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"])
+    low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"], **full_res_signed(b, cfg))
     loss, j_low, j_high = deeplens_loss(low, high, b["target_lo"], b["target"],
                                         cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps, cfg.loss.l1)
     return loss, {"loss_low": j_low, "loss_high": j_high}, psnr_each(high, b["target"])

@@ -29,6 +29,8 @@ kernel predictor and the upsampler (never in the features, which stay image filt
 """
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -202,6 +204,29 @@ class GuidedUpsampler(nn.Module):
 HIGH_REACH = 3  # rows of the high-res image one output row of the upsampler depends on (three 3x3 convs)
 
 
+@torch.no_grad()
+def untouched(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
+    """(B, 1, H, W) bool: the pixels no blur reaches. A pixel's CoC is |signed| * coc_px px; one
+    of 0.5 px or more spreads its pixel up to c + 1 px away (the kernel's anti-aliased rim), and
+    a pixel is untouched when it is under 0.5 px itself and no such spread reaches it. Reach
+    spreads by chessboard distance, on cells of f x f px where it is long (f chosen for at most
+    16 steps; a cell's reach counts one cell more): the test errs on the side of touched."""
+    c = signed.float().abs() * float(coc_px)
+    reach = torch.where(c >= 0.5, c + 1.0, torch.zeros_like(c))
+    longest = float(reach.max()) if reach.numel() else 0.0
+    f = 2 ** max(0, math.ceil(math.log2(longest / 16))) if longest > 16 else 1
+    if f > 1:  # in cells: the reach of a cell's farthest-reaching pixel, plus the cell's own extent
+        reach = torch.where(F.max_pool2d(reach, f, stride=f, ceil_mode=True) > 0,
+                            F.max_pool2d(reach, f, stride=f, ceil_mode=True) / f + 1.0, 0.0)
+    for _ in range(math.ceil(float(reach.max())) if reach.numel() else 0):
+        reach = torch.maximum(reach, F.max_pool2d(reach, 3, stride=1, padding=1) - 1.0)
+    free = reach <= 0
+    if f > 1:
+        h, w = signed.shape[-2:]
+        free = free.repeat_interleave(f, dim=-2).repeat_interleave(f, dim=-1)[..., :h, :w]
+    return free
+
+
 class DeepLensNet(nn.Module):
     """Both networks: `forward(image, signed_lo, steps)` -> (L, H).
 
@@ -209,7 +234,9 @@ class DeepLensNet(nn.Module):
     the lowest size of `size_chain((H, W), steps)`, or of `sizes` (lowest to (H, W)) if given. image_lo: optional (B, 3, h, w) low-res image
     (else area-downsampled here). Returns L (B, 3, h, w), the lens blur at low resolution, and
     H (B, 3, H, W) after `steps` guided x2 upsamplings. rows: the upsamplings' high-res part in
-    bands of that many rows (inference at large sizes; `GuidedUpsampler.forward`).
+    bands of that many rows (inference at large sizes; `GuidedUpsampler.forward`). signed_hi
+    (B, 1, H, W) and coc_px (px of CoC per unit of signed disparity at (H, W)): with [model]
+    identity, H is the image itself wherever no blur reaches (`untouched`), by construction.
     """
 
     def __init__(self, cfg: ModelConfig):
@@ -218,10 +245,12 @@ class DeepLensNet(nn.Module):
                                 joint=cfg.features == "joint", raw=cfg.raw_feature, kernel=cfg.kernel,
                                 norm=cfg.norm)
         self.up = GuidedUpsampler(cfg.up_width, cfg.up_depth, cfg.norm)
+        self.identity = cfg.identity
 
     def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
                 image_lo: torch.Tensor | None = None, *, sizes: list | None = None,
-                rows: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                rows: int | None = None, signed_hi: torch.Tensor | None = None,
+                coc_px: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
         if sizes is None:
             sizes = size_chain(tuple(image.shape[-2:]), steps)
         if tuple(sizes[-1]) != tuple(image.shape[-2:]):
@@ -237,6 +266,8 @@ class DeepLensNet(nn.Module):
         for k in range(steps):
             signed_k = bilinear(signed_lo, sizes[k])
             result = self.up(pyramid[k], result, signed_k, pyramid[k + 1], rows=rows)
+        if self.identity and signed_hi is not None:  # where nothing is blurred the answer is the input
+            result = torch.where(untouched(signed_hi, coc_px), image, result)
         return low, result
 
 
