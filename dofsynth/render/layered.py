@@ -28,7 +28,7 @@ import math
 import numpy as np
 
 from dofsynth.optics.coc import coc_radius
-from dofsynth.optics.kernel import kernel_moments, support_radius
+from dofsynth.optics.kernel import kernel, kernel_moments, support_radius
 from dofsynth.render.fft import Convolver, copy_tile
 from dofsynth.render.frame import add_clipped, compact, grab, is_one
 from dofsynth.render.planes import alpha_box
@@ -181,23 +181,21 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         wsub += np.where(ksub == k - 1, fsub, 0.0)
         if not wsub.any():
             continue
-        conv = Convolver(float(ck), aperture, y1 - y0, x1 - x0)
         # frame coordinates of the strip, and where its blur lands in O
         fy0, fy1, fx0, fx1 = y0 + ey0, y1 + ey0, x0 + ex0, x1 + ex0
         ty0, tx0 = fy0 - s - oy0, fx0 - s - ox0
         a_sub = None if one else grab(alpha, fy0, fy1, fx0, fx1, True)
-        passes = [(conv, wsub)]
+        k = kernel(aperture, float(ck))
+        kernels = [(k, wsub)]
         if slope is not None:  # the Jacobian's first-order term: the p-moment kernel times the slope
             mk = kernel_moments(aperture, float(ck))[1 - along]
             g = slope[sub]
-            if float(np.abs(mk).max()) <= 1e-6:  # a disc's identity level (its centroid is 0)
-                pass
-            elif float(g.max() - g.min()) <= 1e-6 * max(float(np.abs(g).max()), 1e-6):
-                # a linear ramp: one slope over the strip, so one pass with the kernel K + g M
-                merged = conv.k + np.float32(g.flat[0]) * mk
-                passes = [(Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=merged), wsub)]
-            else:
-                passes.append((Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=mk), wsub * g))
+            if float(np.abs(mk).max()) > 1e-6:  # (a disc's identity level has centroid 0: nothing)
+                if float(g.max() - g.min()) <= 1e-6 * max(float(np.abs(g).max()), 1e-6):
+                    kernels = [(k + np.float32(g.flat[0]) * mk, wsub)]  # a linear ramp: one pass, K + g M
+                else:
+                    kernels.append((mk, wsub * g))
+        passes = [(Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=kk), wk) for kk, wk in kernels]
         for cv, wk in passes:  # weight, alpha and colour of each pass
             if along == 0:
                 add_clipped(w_acc, ty0, 0, np.convolve(wk[:, 0], cv.k.sum(axis=1))[:, None])
