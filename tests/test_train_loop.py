@@ -14,7 +14,7 @@ import torch
 from dofsynth.cli import main
 from dofsynth.color import srgb_to_linear
 from dofsynth.train import checkpoint
-from dofsynth.train.config import from_dict, load, to_toml
+from dofsynth.train.config import from_dict, load, replace, to_toml
 from dofsynth.train.infer import inference_sizes, render_photo, render_with, upsampling_steps
 from dofsynth.train.models import DeepLensNet
 from test_train_data import make_dataset, tiny_config
@@ -231,13 +231,8 @@ def test_the_output_is_the_input_where_no_blur_reaches():
     far[40 - 8:50 + 8, 40 - 8:50 + 8] = False   # 4.8 px of CoC reach 5.8 px at most
     assert np.abs(out[far] - image[far]).max() < 1e-6   # (the sRGB round trip of the network's input)
     assert np.abs(out[~far] - image[~far]).max() > 1e-3   # the network does act where there is blur
-    paper = render_with(DeepLensNet(replace_cfg(cfg, identity=False).model).eval(), cfg, image, disparity, focus=0.5)
+    paper = render_with(DeepLensNet(replace(cfg, "model", identity=False).model).eval(), cfg, image, disparity, focus=0.5)
     assert np.abs(paper[far] - image[far]).max() > 1e-3   # the paper's network alone does not keep it
-
-
-def replace_cfg(cfg, **model):
-    from dofsynth.train.config import replace
-    return replace(cfg, "model", **model)
 
 
 class _FixedBlur(torch.nn.Module):

@@ -218,10 +218,10 @@ def _decode_crop(sample: dict, key: str, cfg: Config, rng, crop, target, augment
 def full_res_signed(b: dict, cfg) -> dict:
     """The DeepLensNet keywords signed_hi (the signed disparity of the batch's corrupted
     disparity at full resolution) and coc_px (r_max: full-resolution px per unit of it)."""
-    shape = (-1, 1, 1, 1)
-    focus = torch.as_tensor(b["focus"], dtype=torch.float32, device=b["disparity"].device).reshape(shape)
-    scale = torch.as_tensor(b["max_coc"], dtype=torch.float32, device=b["disparity"].device).reshape(shape)
-    return {"signed_hi": (b["disparity"] - focus) * scale / cfg.model.coc_ref, "coc_px": cfg.model.coc_ref}
+    focus, max_coc = (torch.as_tensor(b[k], dtype=torch.float32, device=b["disparity"].device).reshape(-1, 1, 1, 1)
+                      for k in ("focus", "max_coc"))
+    signed = signed_disparity(b["disparity"], focus, max_coc, cfg.model.coc_ref)
+    return {"signed_hi": signed, "coc_px": cfg.model.coc_ref}
 
 
 def finish_item(c: dict, cfg: Config) -> dict:

@@ -29,6 +29,7 @@ from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from dofsynth.color import linear_to_srgb, srgb_to_linear
+from dofsynth.optics.coc import coc_radius
 from dofsynth.train.checkpoint import CHECKPOINT, load_model
 from dofsynth.train.depth import predict_disparity
 from dofsynth.train.models import area_resize, bilinear
@@ -155,12 +156,13 @@ def render_with(model, cfg, image: np.ndarray, disp: np.ndarray, focus: float, a
         work = (max(1, round(h * f)), max(1, round(w * f)))
         x, d = bilinear(x, work), bilinear(d, work)
     sizes = inference_sizes(work, low_side)
-    signed_lo = (area_resize(d, sizes[0]) - focus) * aperture
+    signed = coc_radius(d, focus, aperture)  # (disparity - focus) * r*/r_max at full resolution
+    signed_lo = area_resize(signed, sizes[0])
     # px of CoC per unit of signed disparity at `work`: r_max at the training size (the lens
     # blur's low resolution times 2**levels)
     coc_px = cfg.model.coc_ref * max(work) / (low_side * 2 ** cfg.data.levels)
     with torch.inference_mode():
-        _, out = model(x, signed_lo, sizes=sizes, rows=BAND_ROWS, signed_hi=(d - focus) * aperture, coc_px=coc_px)
+        _, out = model(x, signed_lo, sizes=sizes, rows=BAND_ROWS, signed_hi=signed, coc_px=coc_px)
         out = area_resize(out, (h, w)).float()
     out = out[0].permute(1, 2, 0).cpu().numpy()
     if cfg.data.color == "srgb":

@@ -216,8 +216,8 @@ def untouched(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
     longest = float(reach.max()) if reach.numel() else 0.0
     f = 2 ** max(0, math.ceil(math.log2(longest / 16))) if longest > 16 else 1
     if f > 1:  # in cells: the reach of a cell's farthest-reaching pixel, plus the cell's own extent
-        reach = torch.where(F.max_pool2d(reach, f, stride=f, ceil_mode=True) > 0,
-                            F.max_pool2d(reach, f, stride=f, ceil_mode=True) / f + 1.0, 0.0)
+        cell = F.max_pool2d(reach, f, stride=f, ceil_mode=True)
+        reach = torch.where(cell > 0, cell / f + 1.0, 0.0)
     for _ in range(math.ceil(float(reach.max())) if reach.numel() else 0):
         reach = torch.maximum(reach, F.max_pool2d(reach, 3, stride=1, padding=1) - 1.0)
     free = reach <= 0
