@@ -25,17 +25,17 @@ sample / floor, the first (warm-up) sample, and the process's own peak RSS (VmHW
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import os
 import resource
 import statistics
 import subprocess
 import sys
-import tarfile
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "assets"
@@ -189,8 +189,6 @@ def main(argv=None) -> int:
           "sample of each process; peak: the measuring process's own maximum RSS.)")
     return 0
 
-
-import numpy as np  # noqa: E402  (after the tree is on sys.path in a child; numpy is the same in every tree)
 
 if __name__ == "__main__":
     raise SystemExit(main())
