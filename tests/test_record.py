@@ -313,6 +313,24 @@ def test_dual_pixel_views_are_mirror_halves_that_sum_to_the_target():
     assert np.abs(both - full)[disc == 0].max() < 0.02     # the layered target, away from the occluder
 
 
+def test_dual_pixel_views_that_would_pass_1_keep_the_targets_hue():
+    """At a bright blurred edge one half-aperture view, scaled to add up to the target, would
+    pass 1 in one channel: both views then move toward the target by one factor per pixel.
+    They still add up to it and keep its hue, where clipping that channel alone turned the
+    other view red (0.6 red against 0.024 green here: measured on a lion's edge over dark hair)."""
+    from dofsynth.render.look import views_adding_up
+
+    target = np.float32([0.8, 0.5, 0.3]).reshape(3, 1, 1)
+    left, right = np.float32([0.9, 0.8, 0.6]).reshape(3, 1, 1), np.full((3, 1, 1), 0.02, np.float32)
+    lv, rv = views_adding_up(target, left, right, 0.5, 0.5)
+    np.testing.assert_allclose(0.5 * lv + 0.5 * rv, target, atol=1e-6)
+    assert lv.max() <= 1.0 and rv.min() >= 0.0
+    for view in (lv, rv):
+        hue = view[:, 0, 0] / view[1, 0, 0]
+        np.testing.assert_allclose(hue, target[:, 0, 0] / target[1, 0, 0], rtol=0.1)
+    assert float(lv[0, 0, 0]) == pytest.approx(1.0) and float(rv[0, 0, 0]) < float(lv[0, 0, 0])  # parallax kept
+
+
 def test_dual_pixel_members_in_a_sample():
     import re
 
@@ -350,7 +368,7 @@ def test_a_recipe_can_choose_the_subaperture_method_and_the_record_says_so(tmp_p
     library = build_library(recipe)
     scene = sample_scene(recipe, library, "train", 0)
     d = decode_sample(render_sample(scene, library))
-    assert d["record"]["renderer"] == "subaperture-v4"
+    assert d["record"]["renderer"] == "subaperture-v5"
     assert {k: d["record"]["options"][k] for k in ("method", "cells", "cat_eye")} == {"method": "subaperture", "cells": 2, "cat_eye": 0.3}
     layers = scene_layers(scene, library)
     hl = d["record"]["options"]["highlight"]

@@ -144,18 +144,23 @@ def views_adding_up(target: np.ndarray, left: np.ndarray, right: np.ndarray, wl:
     """Two views through complementary parts of the aperture (a dual-pixel pair: left, right
     with area shares wl + wr = 1), made to add up to `target` in linear light: each is scaled,
     per pixel and channel, by target / (wl * left + wr * right), so wl * L + wr * R = target
-    (clipped to [0, 1]) exactly while the views keep their own parallax; where one view would
-    pass 1 it is clipped and the other takes the rest. Where both are 0 each view is the target.
-    All arrays planar (3, H, W) float32; the views come back new."""
+    (clipped to [0, 1]) exactly while the views keep their own parallax. Where a view would pass
+    1, both move toward the target by one factor per pixel, the same for the three channels,
+    until none passes 1: they still add up, and keep the target's hue (clipping channels one
+    by one gave a bright edge's views red and yellow fringes). Where both are 0 each view is the
+    target. All arrays planar (3, H, W) float32; the views come back new."""
     t = np.clip(target, 0.0, 1.0)
     s = left * np.float32(wl) + right * np.float32(wr)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(s > 0, t / s, 0.0).astype(np.float32)
     lv = np.where(s > 0, left * ratio, t)
     rv = np.where(s > 0, right * ratio, t)
-    over_l, over_r = lv > 1.0, rv > 1.0            # at most one of them: their mean is t <= 1
-    lv = np.where(over_l, 1.0, np.where(over_r, (t - np.float32(wr)) / np.float32(wl), lv))
-    rv = np.where(over_r, 1.0, np.where(over_l, (t - np.float32(wl)) / np.float32(wr), rv))
+    over = np.maximum(lv, rv)  # >= t (their weighted mean is t): only the larger can pass 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        room = np.where(over > 1.0, (1.0 - t) / (over - t), 1.0)
+    beta = np.clip(room.min(axis=0, keepdims=True), 0.0, 1.0).astype(np.float32)
+    lv = t + beta * (lv - t)
+    rv = t + beta * (rv - t)
     return np.clip(lv, 0.0, 1.0).astype(np.float32), np.clip(rv, 0.0, 1.0).astype(np.float32)
 
 
