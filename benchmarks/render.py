@@ -20,7 +20,10 @@ Run: `.venv/bin/python benchmarks/render.py [--size N] [--repeat K]`.
      against the exact mode (PSNR and time as a multiple of the layered one's, side by side)
      on 64 px scenes: soft discs over a flat background, over a steep ramp, and two
      overlapping out-of-focus foregrounds; max CoC 10 and 20 px, focus 0, 0.5, 1. Times are
-     medians of 7 renders at the same focus (kernels cached: the renderers' own cost).
+     medians of 7 renders at the same focus (kernels cached: the renderers' own cost); with
+     --cat-eye S the sub-aperture and exact modes vignette (--exact-samples N for a fine exact mode).
+     `.venv/bin/python benchmarks/render.py --cat-eye-cost --sizes 256 512 1024`: CPU time of
+     3 x 3 sub-aperture renders with cat-eye 0.5 and 1 against without it.
 """
 from __future__ import annotations
 
@@ -208,11 +211,12 @@ def method_scenes(n: int = 64) -> dict:
                                             Plane(colour([0.2, 0.3, 0.9]), disc(n * 0.5, n * 0.6, n * 0.25), 1.0)]}
 
 
-def method_table(cocs=(10.0, 20.0), focuses=(0.0, 0.5, 1.0), cells=(2, 3, 4), n: int = 64, cat_eye: float = 0.0) -> None:
-    """PSNR (dB) of the layered and sub-aperture modes against the exact mode, and their time
-    as a multiple of the layered method's, side by side, on `method_scenes(n)`; with `cat_eye`
-    the sub-aperture and exact modes vignette with that strength (the layered column is then
-    its unvignetted render, for scale)."""
+def method_table(cocs=(10.0, 20.0), focuses=(0.0, 0.5, 1.0), cells=(2, 3, 4), n: int = 64, cat_eye: float = 0.0,
+                 samples: int | None = None) -> None:
+    """PSNR (dB) of the layered and sub-aperture modes against the exact mode (`samples`
+    aperture points, None: its default), and their time as a multiple of the layered method's,
+    side by side, on `method_scenes(n)`; with `cat_eye` the sub-aperture and exact modes
+    vignette with that strength (the layered column is then its unvignetted render, for scale)."""
     def psnr(a, b):
         return 10 * np.log10(1.0 / max(float(np.mean((a - b) ** 2)), 1e-20))
 
@@ -223,7 +227,7 @@ def method_table(cocs=(10.0, 20.0), focuses=(0.0, 0.5, 1.0), cells=(2, 3, 4), n:
         for coc in cocs:
             for focus in focuses:
                 t0 = time.perf_counter()
-                exact = render_planes(planes, focus, coc, Disk(), method="exact", **eye)
+                exact = render_planes(planes, focus, coc, Disk(), method="exact", samples=samples, **eye)
                 te = time.perf_counter() - t0
                 tl, _ = timed(lambda i: render_planes(planes, focus, coc, Disk()), 7)
                 row = [f"{psnr(render_planes(planes, focus, coc, Disk()), exact):.1f}"]
@@ -234,17 +238,43 @@ def method_table(cocs=(10.0, 20.0), focuses=(0.0, 0.5, 1.0), cells=(2, 3, 4), n:
                 print(f"| {name} | {coc:g} | {focus:g} | " + " | ".join(row) + f" | {te / tl:.0f}x |", flush=True)
 
 
+def cat_eye_cost(sizes=(256, 512, 1024), strengths=(0.5, 1.0), repeat: int = 3) -> None:
+    """CPU seconds of the sub-aperture mode (3 x 3 cells) with cat-eye, against the same
+    without it and the layered method, on `scene(n)` (max CoC 32 px at 1024, scaled with the
+    size), focus 0.5; medians of `repeat` renders, kernels not cached (jittered focus)."""
+    print("| size | max CoC | layered | 3x3 cells | 3x3 + cat-eye " + " | 3x3 + cat-eye ".join(f"{s:g}" for s in strengths)
+          + " |\n|" + "---|" * (4 + len(strengths)))
+    for n in sizes:
+        planes = scene(n, np.random.default_rng(np.random.SeedSequence(2024)))
+        coc = MAX_COC * n / 1024
+
+        def cpu(**kw):
+            times = []
+            for i in range(repeat):
+                t = time.process_time()
+                render_planes(planes, 0.5 + 1e-4 * (i + 1), coc, Disk(), **kw)
+                times.append(time.process_time() - t)
+            return statistics.median(times)
+
+        row = [cpu(), cpu(method="subaperture", cells=3)] + [cpu(method="subaperture", cells=3, cat_eye=s) for s in strengths]
+        print(f"| {n} px | {coc:g} px | " + " | ".join(f"{v:.2f} s" for v in row) + " |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=1024)
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--generation", action="store_true", help="per-stage time of generated samples instead")
-    ap.add_argument("--sizes", type=int, nargs="+", default=[1024], help="with --generation")
-    ap.add_argument("--samples", type=int, default=8, help="with --generation")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1024], help="with --generation or --cat-eye-cost")
+    ap.add_argument("--samples", type=int, default=8, help="with --generation or --cat-eye-cost")
     ap.add_argument("--levels", action="store_true", help="the level-spacing error table instead")
     ap.add_argument("--methods", action="store_true",
                     help="layered and sub-aperture against the exact mode (PSNR, time) on small scenes instead")
     ap.add_argument("--cat-eye", type=float, default=0.0, help="with --methods: vignetting strength (0..1)")
+    ap.add_argument("--exact-samples", type=int, default=None,
+                    help="with --methods: the exact mode's aperture points (its cat's-eye edges are quantized to them)")
+    ap.add_argument("--cat-eye-cost", action="store_true",
+                    help="CPU time of 3x3 sub-aperture renders with cat-eye against without it, at --sizes")
     ap.add_argument("--method-size", type=int, default=64, help="with --methods: the scenes' size in px")
     ap.add_argument("--cocs", type=float, nargs="+", default=[10.0, 20.0], help="with --methods: max CoC values")
     ap.add_argument("--focuses", type=float, nargs="+", default=[0.0, 0.5, 1.0], help="with --methods: focus values")
@@ -256,7 +286,12 @@ def main() -> None:
         return
     if args.methods:
         with scipy.fft.set_workers(1):
-            method_table(tuple(args.cocs), tuple(args.focuses), tuple(args.cells), args.method_size, args.cat_eye)
+            method_table(tuple(args.cocs), tuple(args.focuses), tuple(args.cells), args.method_size, args.cat_eye,
+                         args.exact_samples)
+        return
+    if args.cat_eye_cost:
+        with scipy.fft.set_workers(1):
+            cat_eye_cost(tuple(args.sizes), repeat=min(args.repeat, 3))
         return
     if args.generation:
         with scipy.fft.set_workers(1):

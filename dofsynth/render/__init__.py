@@ -91,7 +91,7 @@ class Method:
 METHODS: dict[str, Method] = {
     "layered": Method(render_layered, "layered-v5", ("level_step", "level_ratio", "margin"),
                       summary="each plane blurred on its own and composited back to front (fast)"),
-    "subaperture": Method(render_subaperture, "subaperture-v4", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
+    "subaperture": Method(render_subaperture, "subaperture-v5", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
                           summary="the aperture cut into cells x cells parts, layered per part: shows what "
                                   "a blurred edge reveals behind it, about cells^2 x the cost"),
     "exact": Method(render_exact, "exact-v2", ("samples", "cat_eye", "margin"), uses_boxes=False,

@@ -18,12 +18,12 @@ import math
 from dataclasses import dataclass, replace
 from functools import lru_cache
 
-import cv2
 import numpy as np
 
-from dofsynth.optics.aperture import Aperture, cat_eye_offset
+from dofsynth.optics.aperture import Aperture
 from dofsynth.optics.coc import coc_radius
 from dofsynth.optics.kernel import coverage, kernel, kernel_moments, support_radius
+from dofsynth.render.cateye import eye_plan, groups
 from dofsynth.render.fft import Convolver, convolve_stack, copy_tile, stack_fits, trim_box, trimmed
 from dofsynth.render.frame import add_clipped, compact, grab, is_one
 from dofsynth.render.layered import cutout_regions, plane_box, render_layered
@@ -88,46 +88,6 @@ def halves(aperture: Aperture) -> tuple[tuple[Cell, float], tuple[Cell, float]]:
     left, right = Cell(aperture, -1.0, 0.0, -1.0, 1.0), Cell(aperture, 0.0, 1.0, -1.0, 1.0)
     wl = float(coverage(left, _AREA_RADIUS).sum()) / total
     return (left, wl), (right, 1.0 - wl)
-
-
-CAT_EYE_GRID = 9      # frame positions per side where the cells' weights are measured, then interpolated
-CAT_EYE_POINTS = 24   # sample points per side of a cell for its share inside the vignetting circle
-
-
-def cat_eye_shares(parts, shape: tuple[int, int], strength: float, margin: int = 0) -> list[np.ndarray]:
-    """For each cell of `parts` ((cell, w) pairs covering the aperture), an (H, W) float32 map:
-    the share of a source point's light that passes through that cell, for a source at each
-    frame position: the cell's part of the aperture inside the vignetting circle (radius 1 about
-    `cat_eye_offset` at the source's position) over all of the aperture inside it. The shares
-    add up to 1 at every position. Measured by points on a CAT_EYE_GRID x CAT_EYE_GRID grid of
-    frame positions and interpolated bilinearly (smooth)."""
-    h, w = (int(v) for v in shape)
-    # each cell's measured share relative to its unclipped one (the same points), times its
-    # area share: exactly the cells' weights where the circle leaves the aperture whole
-    coarse = [wk * _cat_eye_grid(cell, (h, w), float(strength), int(margin))
-              / max(_cat_eye_grid(cell, (h, w), 0.0, 0)[0, 0], 1e-12)
-              for cell, wk in parts]
-    total = np.maximum(np.sum(coarse, axis=0), 1e-12)
-    return [cv2.resize(c / total, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float32) for c in coarse]
-
-
-@lru_cache(maxsize=256)
-def _cat_eye_grid(cell: Cell, shape: tuple[int, int], strength: float, margin: int = 0) -> np.ndarray:
-    """The CAT_EYE_GRID x CAT_EYE_GRID measured shares of the aperture in `cell` and the circle (read-only; `cat_eye_shares`)."""
-    h, w = shape
-    t = (np.arange(CAT_EYE_POINTS) + 0.5) / CAT_EYE_POINTS
-    px = cell.x0 + (cell.x1 - cell.x0) * t
-    py = cell.y0 + (cell.y1 - cell.y0) * t
-    py, px = np.meshgrid(py, px, indexing="ij")
-    inside = cell.base.contains(px, py)
-    unit = (cell.x1 - cell.x0) * (cell.y1 - cell.y0) / CAT_EYE_POINTS**2 / cell.base.area(1.0)
-    gy = np.linspace(0, h - 1, CAT_EYE_GRID)
-    gx = np.linspace(0, w - 1, CAT_EYE_GRID)
-    oy, ox = cat_eye_offset(shape, strength, *np.meshgrid(gy, gx, indexing="ij"), margin=margin)
-    d2 = (py[None, None] - oy[..., None, None]) ** 2 + (px[None, None] - ox[..., None, None]) ** 2
-    coarse = (((d2 <= 1.0) & inside).sum(axis=(2, 3)) * unit).astype(np.float32)
-    coarse.setflags(write=False)
-    return coarse
 
 
 def whole(options):
@@ -275,31 +235,61 @@ def render_cell(planes, focus: float, max_coc: float, cell: Cell, options) -> np
     return R
 
 
+def _compact_disparity(plane):
+    d = plane.constant_disparity()
+    return np.float32(d) if d is not None else compact(np.asarray(plane.disparity, np.float32))
+
+
+def _weighted(planes, weights: np.ndarray, r0: int, c0: int, y0: int, y1: int, x0: int, x1: int):
+    """The planes cut to rows y0:y1, columns x0:x1, their colour times `weights` (placed at rows
+    r0, columns c0 of the frame; 0 elsewhere in the cut)."""
+    w = np.zeros((y1 - y0, x1 - x0, 1), np.float32)
+    w[r0 - y0 : r0 - y0 + weights.shape[0], c0 - x0 : c0 - x0 + weights.shape[1], 0] = weights
+    out = []
+    for p in planes:
+        d = p.disparity if np.ndim(p.disparity) == 0 else np.broadcast_to(p.disparity, p.shape)[y0:y1, x0:x1]
+        box = None
+        if p.box is not None:
+            by0, by1, bx0, bx1 = p.box
+            box = (max(by0, y0) - y0, max(min(by1, y1) - y0, 0), max(bx0, x0) - x0, max(min(bx1, x1) - x0, 0))
+        out.append(Plane(np.asarray(p.rgb, np.float32)[y0:y1, x0:x1] * w, np.asarray(p.alpha)[y0:y1, x0:x1], d, box))
+    return out
+
+
 def render_subaperture(planes, focus: float, max_coc: float, aperture: Aperture, options) -> np.ndarray:
     """Sub-aperture render of validated planes (back to front): linear RGB (3, H, W) float32.
     `options`: a dofsynth.render.RenderOptions (its `cells`: n for an n x n grid; `cat_eye`:
     the vignetting strength; the layered method's level_step and level_ratio per cell).
 
-    With cat_eye > 0 each plane's colour goes through cell k with the share `cat_eye_shares`
-    gives its source position (the same map for every plane: a plane's pixels are its source
-    points), and the cells' images are added: each source point keeps its light, spread over
-    the part of the aperture its clip circle leaves (as the exact method does it)."""
+    With cat_eye > 0 each cell is cut further by the clip circle (dofsynth.render.cateye):
+    per part of it (the cell where the circle leaves it whole; the cell clipped about each grid
+    node where the circle cuts it), the planes' colours times that part's share of each source
+    point's light are composited through the part, on the cut of the frame the part's sources
+    reach (occlusion stays unclipped), and everything is added: each source point keeps its
+    light, spread evenly over its clipped aperture, as in the exact method."""
     n = options.cells
     if n == 1 and not options.cat_eye:
         return render_layered(planes, focus, max_coc, aperture, options)
     parts = cells(aperture, n)
-    shares = cat_eye_shares(parts, planes[0].shape, options.cat_eye, options.margin) if options.cat_eye else None
-    acc = None
-    for k, (cell, w) in enumerate(parts):
-        if shares is None:
+    if not options.cat_eye:
+        acc = None
+        for cell, w in parts:
             img = render_cell(planes, focus, max_coc, cell, options)
             img *= np.float32(w)
-        else:
-            seen = [Plane(np.asarray(p.rgb, np.float32) * shares[k][:, :, None], p.alpha, p.disparity, p.box)
-                    for p in planes]
-            img = render_cell(seen, focus, max_coc, cell, options)
-        if acc is None:
-            acc = img
-        else:
-            acc += img
+            if acc is None:
+                acc = img
+            else:
+                acc += img
+        return acc
+    H, W = planes[0].shape
+    reach = max(float(np.max(np.abs(coc_radius(_compact_disparity(p), focus, max_coc)))) for p in planes)
+    plan = eye_plan(parts, (H, W), options.cat_eye, options.margin, reach)
+    hy, hx = plan.hats(np.arange(H), np.arange(W))
+    s = 2 * support_radius(reach)  # what a part's sources reach, and the planes that reach it
+    acc = np.zeros((3, H, W), np.float32)
+    for k, (cell, _) in enumerate(parts):
+        for part, (r0, r1, c0, c1), weights in groups(plan, k, cell, hy, hx):
+            y0, y1, x0, x1 = max(r0 - s, 0), min(r1 + s, H), max(c0 - s, 0), min(c1 + s, W)
+            cut = _weighted(planes, weights, r0, c0, y0, y1, x0, x1)
+            acc[:, y0:y1, x0:x1] += render_cell(cut, focus, max_coc, part, options)
     return acc
