@@ -29,7 +29,7 @@ from dofsynth.optics.aperture import Aperture, cat_eye_offset
 from dofsynth.optics.kernel import coverage
 
 EDGE_PX = 1.0     # px the clip edge may move between neighbouring nodes (at the largest |CoC|)
-MAX_NODES = 33    # nodes per side at most (the edge bound gives way beyond; cost grows with the cut nodes)
+MAX_NODES = 33    # nodes per side at most (odd) (the edge bound gives way beyond; cost grows with the cut nodes)
 _COLUMNS = 512    # sub-columns per unit of x for the parts' areas (exact along y)
 _EMPTY = 1e-6     # a share below this is left out (its light goes to the other cells)
 
@@ -119,9 +119,9 @@ def eye_plan(parts, shape: tuple[int, int], strength: float, margin: int, reach:
     half = 0.5 * math.hypot(h - 1 - 2 * margin, w - 1 - 2 * margin) or 1.0
     per_px = strength * max(float(reach), 1.0) / half / EDGE_PX  # edge px moved per px of frame
 
-    def nodes(n):
-        count = min(MAX_NODES, max(2, int(math.ceil((n - 1) * per_px)) + 1)) if n > 1 else 1
-        return np.linspace(0.0, n - 1.0, count)
+    def nodes(n):  # an odd count: the frame's centre, where the circle leaves the aperture whole, is a node
+        count = min(MAX_NODES, max(3, int(math.ceil((n - 1) * per_px)) + 1)) if n > 1 else 1
+        return np.linspace(0.0, n - 1.0, count + 1 - count % 2)
 
     gy, gx = nodes(h), nodes(w)
     oy, ox = cat_eye_offset((h, w), strength, *np.meshgrid(gy, gx, indexing="ij"), margin=margin)
