@@ -97,11 +97,6 @@ class EyePlan:
         `ys`, `xs` (clamped to the planes: what lies past them is their edge repeated)."""
         return _hat(self.gy, ys), _hat(self.gx, xs)
 
-    def share_map(self, k: int, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
-        """Cell k's share of a source's light at each of ys x xs: the hats' blend of its shares."""
-        hy, hx = self.hats(ys, xs)
-        return (hy.T @ self.shares[k] @ hx).astype(np.float32)
-
 
 def _hat(g: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Bilinear hats of the nodes `g` (evenly spaced, first at 0 and last at the end) at `pos`."""
