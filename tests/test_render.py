@@ -582,18 +582,18 @@ def test_vignetting_grows_continuously_from_the_plain_aperture():
         render_planes(planes, 1.0, 10.0, Disk(), cat_eye=0.5)
 
 
-def test_cat_eye_subaperture_renders_approach_the_exact_mode_with_the_same_vignetting():
+def test_cat_eye_subaperture_renders_match_the_exact_mode_with_the_same_vignetting():
     """Blurred points over the frame, the aperture clipped by a circle offset toward the
-    corners (strength 0.5): with more cells the sub-aperture render comes closer to the exact
-    mode given the same spatially varying aperture, and is closer to it than to the exact
-    render without vignetting (the bokeh really become cat's eyes)."""
+    corners (strength 0.5): the cells are clipped inside, so 2, 4 or 6 cells per side all
+    match the exact mode given the same spatially varying aperture (75.7 dB measured), far
+    closer than to the exact render without vignetting (the bokeh really become cat's eyes)."""
     planes = _points_scene()
     vignetted = render_planes(planes, 1.0, 10.0, Disk(), method="exact", cat_eye=0.5)
     plain = render_planes(planes, 1.0, 10.0, Disk(), method="exact")
     mse = lambda a, b: float(np.mean((a - b) ** 2))  # noqa: E731
     renders = {n: render_planes(planes, 1.0, 10.0, Disk(), method="subaperture", cells=n, cat_eye=0.5) for n in (2, 4, 6)}
     errs = [mse(renders[n], vignetted) for n in (2, 4, 6)]
-    assert errs[0] > errs[1] > errs[2], errs
+    assert max(errs) < 1e-6, errs   # above 60 dB
     assert mse(renders[6], vignetted) < mse(renders[6], plain) / 4
     in_focus = render_planes(planes, 0.0, 10.0, Disk(), method="subaperture", cells=6, cat_eye=0.5)
     assert np.allclose(in_focus, planes[0].rgb, atol=1e-6)   # normalized: what is in focus is untouched
@@ -631,6 +631,17 @@ def test_a_centred_bokeh_disc_loses_nothing_to_vignetting(method, kw):
     assert abs(float(strong.sum()) - 1.0) < 5e-3
     assert abs(float(strong[r < c - 1.5].mean()) * np.pi * c * c - 1.0) < 0.03
     assert float(strong[r > c + 1.5].max()) < 1e-6
+
+
+def test_the_exact_modes_cats_eyes_converge_at_its_default_sampling():
+    """Each aperture point counts with the share of its grid cell inside the clip circle, so
+    the cat's eye's edge is not quantized to the sampling: at the default 0.5 px steps the
+    exact mode is within 58 dB of a render with 8000 aperture points (64.9 dB measured; the
+    hard inside test of exact-v2 gave 45.9 dB)."""
+    planes = _cat_eye_scenes(96)[0]
+    fine = render_planes(planes, 1.0, 5.0, Disk(), method="exact", cat_eye=1.0, samples=8000)
+    default = render_planes(planes, 1.0, 5.0, Disk(), method="exact", cat_eye=1.0)
+    assert 10 * np.log10(1.0 / float(np.mean((default - fine) ** 2))) > 58.0
 
 
 @pytest.mark.parametrize("method,kw", [("exact", {}), ("subaperture", {"cells": 3})])
@@ -711,10 +722,9 @@ def _cat_eye_scenes(n):
 def test_cat_eye_sub_aperture_is_within_50_db_of_the_exact_mode(strength):
     """3 x 3 cells (the recipes' default) with cat-eye meet the bar they meet without it: at
     least 50 dB from the exact mode on three scenes (a blurred background: its bokeh are the
-    cat's eyes; measured 53.1-60.8 dB at 96 px). The exact mode samples the aperture finely here
-    (4000 points): its cat's-eye edges are quantized to its sampling."""
+    cat's eyes)."""
     for planes in _cat_eye_scenes(96):
-        exact = render_planes(planes, 1.0, 6.0, Disk(), method="exact", cat_eye=strength, samples=4000)
+        exact = render_planes(planes, 1.0, 6.0, Disk(), method="exact", cat_eye=strength)
         sub = render_planes(planes, 1.0, 6.0, Disk(), method="subaperture", cells=3, cat_eye=strength)
         assert 10 * np.log10(1.0 / float(np.mean((sub - exact) ** 2))) > 50.0
 

@@ -94,7 +94,7 @@ METHODS: dict[str, Method] = {
     "subaperture": Method(render_subaperture, "subaperture-v5", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
                           summary="the aperture cut into cells x cells parts, layered per part: shows what "
                                   "a blurred edge reveals behind it, about cells^2 x the cost"),
-    "exact": Method(render_exact, "exact-v2", ("samples", "cat_eye", "margin"), uses_boxes=False,
+    "exact": Method(render_exact, "exact-v3", ("samples", "cat_eye", "margin"), uses_boxes=False,
                     summary="every aperture point warped and composited, averaged (slow, a reference)"),
 }
 

@@ -27,6 +27,7 @@ def aperture_samples(aperture: Aperture, max_abs_coc: float, samples: int | None
     Grid spacing h = 0.5 / max_abs_coc by default (neighbouring points' displacements differ by at
     most 0.5 px), or sqrt(area / samples) when `samples` is given. Each point's weight is the area
     of the shape inside its grid cell (so the set integrates the shape like the kernels do).
+    Returns px, py, weights, h and each point's share of its grid cell inside the shape.
     """
     unit_area = aperture.area(1.0)
     if samples is not None:
@@ -38,7 +39,17 @@ def aperture_samples(aperture: Aperture, max_abs_coc: float, samples: int | None
     iy, ix = np.nonzero(w > 0)
     px, py = (ix - s) * h, (iy - s) * h
     wt = w[iy, ix] / w.sum()
-    return px.astype(np.float32), py.astype(np.float32), wt
+    return px.astype(np.float32), py.astype(np.float32), wt, h, np.minimum(w[iy, ix], 1.0)
+
+
+def inside_clip(x, y, oy, ox, h: float, share: float):
+    """The part of an aperture point's light (grid cell of side h at (x, y), `share` of it inside
+    the shape) that the clip circle of radius 1 about (ox, oy) lets through: the cell's share
+    inside the circle, linear in the distance across it within h / 2, taken as nested with the
+    shape's (min, over the shape's share), so a circle along the shape's own rim clips nothing
+    (a hard inside test quantizes the cat's eye's edge to the sampling)."""
+    d = np.sqrt((y - oy) ** 2 + (x - ox) ** 2)
+    return (np.minimum(np.clip(0.5 + (1.0 - d) / h, 0.0, 1.0), share) / share).astype(np.float32)
 
 
 def _source(cmap, px, py, gx, gy):
@@ -83,15 +94,15 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, optio
         c = np.float32(coc_radius(d, focus, max_coc)) if d is not None else coc_radius(plane.disparity_map(), focus, max_coc)
         cmax = max(cmax, float(np.max(np.abs(c))))
         prepared.append((np.ascontiguousarray(pm), c))
-    px, py, wt = aperture_samples(aperture, cmax, options.samples)
+    px, py, wt, h, share = aperture_samples(aperture, cmax, options.samples)
     strength = options.cat_eye
     if strength:  # the share of the aperture inside each frame position's clip circle (a map)
         oy, ox = cat_eye_offset((H, W), strength, margin=options.margin)
         area = np.zeros((H, W), np.float32)
-        for x, y, w in zip(px, py, wt):
-            area += np.float32(w) * ((y - oy) ** 2 + (x - ox) ** 2 <= 1.0)
+        for x, y, w, f in zip(px, py, wt, share):
+            area += np.float32(w) * inside_clip(x, y, oy, ox, h, f)
     acc = np.zeros((H, W, 3), np.float64)
-    for x, y, w in zip(px, py, wt):
+    for x, y, w, f in zip(px, py, wt, share):
         comp = np.zeros((H, W, 3), np.float32)
         for pm, c in prepared:
             mx, my = _source(c, x, y, gx, gy)
@@ -100,7 +111,7 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, optio
             if strength:  # the light counts where p lies in the clip circle of its source point
                 sx, sy = np.clip(mx, 0, W - 1), np.clip(my, 0, H - 1)  # (replicated beyond the frame)
                 oy, ox = cat_eye_offset((H, W), strength, sy, sx, options.margin)
-                inside = (y - oy) ** 2 + (x - ox) ** 2 <= 1.0
+                inside = inside_clip(x, y, oy, ox, h, f)
                 colour = colour * (inside / np.maximum(_warp(area, sx, sy), 1e-12)).astype(np.float32)[:, :, None]
             comp = colour + (1.0 - a) * comp
         acc += w * comp
