@@ -100,6 +100,11 @@ VIEW_COLUMNS = ["target 0, left half", "target 0, right half"]
 VIEW_MEMBERS = ("dp.0.left.png", "dp.0.right.png")  # their members (render.members dual_pixel)
 
 
+def _has_views(sample: dict) -> bool:
+    """Whether a decoded sample holds target 0's dual-pixel views."""
+    return all(m in sample.get("optional", {}) for m in VIEW_MEMBERS)
+
+
 def sheet_layout(n_rows: int, n_targets: int, size_hw: tuple[int, int], thumb: int = 192,
                  n_views: int = 0) -> SheetLayout:
     """The layout for `n_rows` samples of size (H, W) with `n_targets` DoF targets each (and
@@ -140,7 +145,7 @@ def tile_labels(sample: dict) -> list[str]:
     opts = rec.get("options", {})
     look = "".join(f"  {k} {opts[k]:g}" for k in ("cells", "cat_eye") if opts.get(k))
     labels += [f"focus {_fmt(t['focus'])}  max CoC {_fmt(t['max_coc'], 1)}px{look}" for t in rec["targets"]]
-    if all(m in sample.get("optional", {}) for m in VIEW_MEMBERS):
+    if _has_views(sample):
         labels += ["left half of the aperture", "right half: the two add up to target 0"]
     return labels
 
@@ -151,7 +156,7 @@ def render_sheet(samples: list[dict], thumb: int = 192, title: str | None = None
     if not samples:
         raise ValueError("render_sheet: no samples to show")
     n_targets = max(len(s["dof"]) for s in samples)
-    views = any(all(m in s.get("optional", {}) for m in VIEW_MEMBERS) for s in samples)
+    views = any(_has_views(s) for s in samples)
     lay = sheet_layout(len(samples), n_targets, samples[0]["depth"].shape, thumb, len(VIEW_MEMBERS) if views else 0)
     sheet = np.empty((lay.height, lay.width, 3), np.uint8)
     sheet[:] = BG
@@ -192,10 +197,9 @@ def _draw_row(sheet: np.ndarray, lay: SheetLayout, row: int, s: dict) -> None:
     _paste(sheet, coverage_overlay(resize(aif, tw, th), cover), lay.tile(row, 2))
     for i, dof in enumerate(s["dof"]):
         _paste(sheet, resize(to_rgb8(dof), tw, th), lay.tile(row, 3 + i))
-    optional = s.get("optional", {})
-    if lay.n_views and all(m in optional for m in VIEW_MEMBERS):
+    if lay.n_views and _has_views(s):
         for i, name in enumerate(VIEW_MEMBERS):
-            _paste(sheet, resize(to_rgb8(optional[name]), tw, th), lay.tile(row, 3 + lay.n_targets + i))
+            _paste(sheet, resize(to_rgb8(s["optional"][name]), tw, th), lay.tile(row, 3 + lay.n_targets + i))
     labels = tile_labels(s)
     if len(s["dof"]) < lay.n_targets and len(labels) > 3 + len(s["dof"]):  # views after a short row's targets
         labels = labels[:3 + len(s["dof"])] + [""] * (lay.n_targets - len(s["dof"])) + labels[3 + len(s["dof"]):]

@@ -191,6 +191,12 @@ def _blur_varying_cutout(plane, focus: float, max_coc: float, cell: Cell, option
     return (0, H, 0, W), out
 
 
+def _compact_disparity(plane):
+    """The plane's disparity: a number when it is constant, else its map kept compact."""
+    d = plane.constant_disparity()
+    return d if d is not None else compact(np.asarray(plane.disparity_map(), np.float32))
+
+
 def render_cell(planes, focus: float, max_coc: float, cell: Cell, options) -> np.ndarray:
     """The planes (back to front) seen through one cell of the aperture: linear RGB (3, H, W).
 
@@ -203,9 +209,7 @@ def render_cell(planes, focus: float, max_coc: float, cell: Cell, options) -> np
     H, W = planes[0].shape
     back = planes[0]
     R = _blur_back(back, focus, max_coc, cell, options, H, W)
-    d = back.constant_disparity()
-    c = coc_radius(d, focus, max_coc) if d is not None else \
-        coc_radius(compact(np.asarray(back.disparity_map(), np.float32)), focus, max_coc)
+    c = coc_radius(_compact_disparity(back), focus, max_coc)
     G = None
     boxes = [(p, plane_box(p, np.asarray(p.alpha, np.float32))) for p in planes[1:]]
     boxes = [(p, box) for p, box in boxes if box is not None]  # fully transparent planes add nothing
@@ -233,11 +237,6 @@ def render_cell(planes, focus: float, max_coc: float, cell: Cell, options) -> np
         r += pm
         r -= cov
     return R
-
-
-def _compact_disparity(plane):
-    d = plane.constant_disparity()
-    return np.float32(d) if d is not None else compact(np.asarray(plane.disparity, np.float32))
 
 
 def _weighted(planes, weights: np.ndarray, r0: int, c0: int, y0: int, y1: int, x0: int, x1: int):

@@ -188,17 +188,20 @@ class GuidedUpsampler(nn.Module):
         size = tuple(image_hi.shape[-2:])
         low = self.low(torch.cat([image_lo, result_lo, signed_lo], dim=1))
         if rows is None or rows >= size[0]:
-            m_l = torch.sigmoid(self.fuse(torch.cat([bilinear(low, size), self.high(image_hi)], dim=1)))
+            m_l = self._mask(bilinear(low, size), image_hi)
             return (1 - m_l) * image_hi + m_l * bilinear(result_lo, size)
         low, res = bilinear(low, size), bilinear(result_lo, size)
         out = torch.empty_like(image_hi)
         for r0 in range(0, size[0], rows):
             r1 = min(r0 + rows, size[0])
             a, b = max(r0 - HIGH_REACH, 0), min(r1 + HIGH_REACH, size[0])  # the rows its convs reach
-            m_l = torch.sigmoid(self.fuse(torch.cat([low[:, :, a:b], self.high(image_hi[:, :, a:b])], dim=1)))
-            m_l = m_l[:, :, r0 - a:r1 - a]
+            m_l = self._mask(low[:, :, a:b], image_hi[:, :, a:b])[:, :, r0 - a:r1 - a]
             out[:, :, r0:r1] = (1 - m_l) * image_hi[:, :, r0:r1] + m_l * res[:, :, r0:r1]
         return out
+
+    def _mask(self, low: torch.Tensor, image_hi: torch.Tensor) -> torch.Tensor:
+        """m_l, the fusion mask, from the upsampled low-res branch and the high-res image."""
+        return torch.sigmoid(self.fuse(torch.cat([low, self.high(image_hi)], dim=1)))
 
 
 HIGH_REACH = 3  # rows of the high-res image one output row of the upsampler depends on (three 3x3 convs)
