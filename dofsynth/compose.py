@@ -134,7 +134,9 @@ def extend_cut_sides(rgb: np.ndarray, alpha: np.ndarray, x0: int, y0: int, size:
 
 def ramp_beyond(bgp, h: int, w: int, m: int) -> np.ndarray:
     """A ramp's disparity over the canvas (broadcast (h + 2m, w + 2m)): the frame's linear ramp
-    continued past its edges, clipped to [0, 1]."""
+    (`background_disparity`'s convention: b0 at the left column or the bottom row) continued
+    past its edges, clipped to [0, 1]. Its frame part equals the frame's map up to float
+    rounding, which is why it is not folded into that function (depth bytes would move)."""
     horizontal = bgp.direction == "horizontal"
     n = w if horizontal else h
     t = (np.arange(n + 2 * m, dtype=np.float64) - m) / max(n - 1, 1)
