@@ -355,8 +355,7 @@ def test_ctrl_c_while_workers_start_prints_one_line(recipe_path, tmp_path, worke
     proc = subprocess.Popen([sys.executable, "-m", "dofsynth", "generate", str(long), "--out", str(out),
                              "--quiet", "--workers", str(workers)], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            # a test run started in the background inherits SIGINT ignored; a terminal's does not
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            preexec_fn=_as_from_a_terminal)
     assert _until(lambda: _children(proc.pid), 300, 0.01), "no worker started"
     os.killpg(proc.pid, signal.SIGINT)
     rc, err = _ended(proc)
@@ -387,9 +386,22 @@ def _long_recipe(recipe_path, tmp_path) -> Path:
     return long
 
 
+def _as_from_a_terminal() -> None:
+    """In the child, before exec: SIGINT and SIGTERM with their default actions and unblocked,
+    as a shell on a terminal starts a program. A test run may have inherited them otherwise
+    (started in the background: SIGINT ignored; by a supervisor: signals blocked), and an
+    inherited block would make `_holds_stop_signals` true before dofsynth's own line runs."""
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
 def _holds_stop_signals(pid: int) -> bool:
-    """Whether process `pid` blocks or catches both SIGINT and SIGTERM (/proc/PID/status)."""
+    """Whether process `pid` runs dofsynth (it has exec'd: the forked test process before it
+    has the test's own handlers) and blocks or catches both SIGINT and SIGTERM (/proc/PID/status)."""
     try:
+        if b"-m\0dofsynth" not in Path(f"/proc/{pid}/cmdline").read_bytes():
+            return False
         fields = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines() if ":" in line)
     except OSError:
         return False
@@ -400,8 +412,7 @@ def _holds_stop_signals(pid: int) -> bool:
 
 def _session_run(*args) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "dofsynth", *map(str, args)], cwd=ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_as_from_a_terminal)
 
 
 @pytest.mark.parametrize("phase", ["0.2 s", "0.6 s", "1.2 s", "workers importing", "workers rendering"])
@@ -438,8 +449,8 @@ def test_an_early_signal_ends_the_run_with_one_line(recipe_path, tmp_path, delay
     time.sleep(delay)
     os.killpg(proc.pid, sig)
     got, err = _ended(proc)
-    line = _one_line(err)
-    assert got == rc and word in line and "Traceback" not in err, (got, err)
+    assert got == rc and "Traceback" not in err, (got, err)
+    assert word in _one_line(err)
 
 
 def test_a_billion_sample_recipe_is_refused_by_name_and_the_plan_costs_no_memory(tmp_path):
