@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 
 import cv2
@@ -76,12 +77,45 @@ def test_stopping_and_resuming_equals_an_uninterrupted_run(setup, capsys):
     assert b["step"] == 4
     for k in a["model"]:
         assert torch.equal(a["model"][k], b["model"][k]), k
+        assert torch.equal(a["ema"][k], b["ema"][k]), k          # the moving average resumes too
     assert [r["loss"] for r in _rows(run)] == [r["loss"] for r in _rows(run4)]
     assert main(args) == 0          # finished: nothing to do
     assert "already trained" in capsys.readouterr().out
     other = cfg_path.with_name("other.toml")
     other.write_text(to_toml(tiny_config(loss={"beta": 2.0})))
     assert main(["train", str(other), "--data", str(data), "--run", str(run)]) == 2   # refused, named
+
+
+def test_validation_keeps_the_best_averaged_weights_and_a_run_is_used_from_them(setup):
+    _, _, _, run = setup
+    rows = [r for r in _rows(run) if r["val_psnr"]]
+    best = checkpoint.load(run / checkpoint.BEST)
+    top = max(rows, key=lambda r: float(r["val_psnr"]))          # the first of equals
+    assert best["step"] == int(top["step"]) and math.isclose(best["val"]["val_psnr"], float(top["val_psnr"]), rel_tol=1e-5)
+    last = checkpoint.load(run / "ckpt.pt")
+    assert last["best_score"] == pytest.approx(float(top["val_psnr"]), rel=1e-5)
+    assert any(not torch.equal(last["ema"][k], last["model"][k]) for k in last["model"])  # an average, not a copy
+    if best["step"] == last["step"]:
+        assert all(torch.equal(best["model"][k], last["ema"][k]) for k in best["model"])
+    model, _ = checkpoint.load_model(run)                        # a run folder: its best.pt
+    assert checkpoint.weights_path(run) == run / checkpoint.BEST
+    assert all(torch.equal(v, best["model"][k]) for k, v in model.state_dict().items())
+
+
+def test_the_moving_average_by_hand():
+    """d = min(decay, (1 + t) / (10 + t)): after step 0, 0.1 of the old average is kept; late,
+    the decay itself."""
+    model = torch.nn.Linear(1, 1, bias=False)
+    with torch.no_grad():
+        model.weight.fill_(1.0)
+    ema = checkpoint.Ema(model, 0.5)
+    with torch.no_grad():
+        model.weight.fill_(3.0)
+    ema.update(model, 0)                                          # 0.1 * 1 + 0.9 * 3
+    assert ema.module.weight.item() == pytest.approx(2.8)
+    ema.update(model, 1000)                                       # d = 0.5: 0.5 * 2.8 + 0.5 * 3
+    assert ema.module.weight.item() == pytest.approx(2.9)
+    assert not ema.module.weight.requires_grad
 
 
 def test_checkpoint_reload_gives_the_same_outputs(tmp_path):

@@ -110,6 +110,34 @@ def test_normalized_loss_by_hand():
     assert math.isclose(with_l1.item(), total.item() + 2.0 * (6.5 / 4 + 0.5 * 3.5 / 4), rel_tol=1e-6)
 
 
+def test_the_default_loss_pulls_every_pixel_toward_its_target_where_j_pushes_small_errors_up():
+    """Errors 0.01 and 0.5, by hand: J = (0.01^2.5 + 0.5^2.5) / (0.01^1.5 + 0.5^1.5) = 0.49862,
+    and dJ/dx_0 has the sign of 2.5 * 0.01 - 1.5 J < 0: J pushes the small error *up*. The
+    default ("weighted") has the same value; its gradient is w_i sign(e_i) / sum w with
+    w = |e|^1.5: (0.001, 0.35355) / 0.35455, toward the target at both pixels."""
+    y = torch.tensor([0.2, 0.3])
+    j_value = (0.01 ** 2.5 + 0.5 ** 2.5) / (0.01 ** 1.5 + 0.5 ** 1.5)
+    assert math.isclose(j_value, 0.49862, rel_tol=1e-4)
+    grads = {}
+    for kind in ("j", "weighted"):
+        x = (y + torch.tensor([0.01, 0.5])).requires_grad_(True)
+        total, low, _ = deeplens_loss(x, y, y, y, beta=0.0, kind=kind)  # L = x against T_lo = y
+        assert math.isclose(low.item(), j_value, rel_tol=1e-5)  # one value, two gradients
+        total.backward()
+        grads[kind] = x.grad
+    assert grads["j"][0] < 0 < grads["j"][1]                     # the paper's J: the small error grows
+    w = torch.tensor([0.01 ** 1.5, 0.5 ** 1.5])
+    assert torch.allclose(grads["weighted"], w / w.sum(), rtol=1e-4)
+    assert (grads["weighted"] > 0).all()                          # both errors shrink
+    # its only minimum is the target: 0 there, > 0 at any other point of a line through it
+    for t in (-1.0, -0.1, -1e-3, 1e-3, 0.1, 1.0):
+        x = y + t * torch.tensor([0.3, -0.7])
+        assert deeplens_loss(x, x, y, y, kind="weighted")[0].item() > 0
+    assert deeplens_loss(y, y, y, y, kind="weighted")[0].item() == 0.0
+    with pytest.raises(ValueError, match="loss kind"):
+        deeplens_loss(y, y, y, y, kind="l2")
+
+
 def test_zero_error_gives_zero_loss_and_finite_gradients():
     x = torch.rand(2, 3, 4, 4, requires_grad=True)
     loss = normalized_loss(x, x.detach().clone())

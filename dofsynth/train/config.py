@@ -100,6 +100,8 @@ class LossConfig:
     alpha: float = key(1.5, lo=0.0)    # J = sum|e|^(alpha+1) / sum|e|^alpha
     beta: float = key(1.0, lo=0.0)     # loss = J(L) + beta * J(H)
     eps: float = key(1e-8, lo=0.0, lo_open=True)  # keeps J finite (and 0) when the error is zero
+    kind: str = key("weighted", choices=("weighted", "j"))  # J with its weights held constant in the gradient
+    #                                  # (every pixel pulled toward its target), or the paper's J (dofsynth.train.loss)
     l1: float = key(0.0, lo=0.0)       # optional extra weight of a plain L1 term (see dofsynth.train.loss)
 
 
@@ -114,6 +116,8 @@ class TrainConfig:
     weight_decay: float = key(0.01, lo=0.0)
     betas: Range = key((0.9, 0.99), lo=0.0, hi=1.0)
     grad_clip: float = key(1.0, lo=0.0)            # 0 = off
+    ema: float = key(0.999, lo=0.0, hi=0.9999)  # decay of the weights' moving average, which validation
+    #                                              # scores and RUN/best.pt keeps (dofsynth.train.checkpoint); 0 = off
     log_interval: int = key(10, lo=1)
     eval_interval: int = key(1000, lo=0)           # 0 = never; validation is on the held-out data.val_share
     eval_batches: int = key(0, lo=0)               # 0 = the whole validation share

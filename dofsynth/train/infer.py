@@ -30,7 +30,7 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from dofsynth.color import linear_to_srgb, srgb_to_linear
 from dofsynth.optics.coc import coc_radius
-from dofsynth.train.checkpoint import CHECKPOINT, load_model
+from dofsynth.train.checkpoint import load_model, weights_path
 from dofsynth.train.depth import predict_disparity
 from dofsynth.train.models import area_resize, bilinear
 
@@ -57,8 +57,7 @@ def for_inference(model: nn.Module) -> nn.Module:
 
 def cached_model(run_dir: str | Path, device: str):
     """load_model, cached by (checkpoint path, its mtime, device)."""
-    path = Path(run_dir)
-    path = path / CHECKPOINT if path.is_dir() else path
+    path = weights_path(run_dir)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no trained model (run `dofsynth train` first)")
     key = (str(path.resolve()), path.stat().st_mtime_ns, device)

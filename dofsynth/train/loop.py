@@ -7,11 +7,12 @@ trains the DoF networks (DeepLensNet) or, with [train] task = "depth", the depth
 
 What happens: set up (distributed or not), resolve the config against the data and write it to
 RUN/config.toml, build the model and AdamW, resume from RUN/ckpt.pt if it exists, then step:
-batch -> forward (autocast on CUDA) -> loss J(L) + beta J(H) -> backward -> clip -> step.
-Every log_interval steps a row goes to RUN/log.csv (and TensorBoard when installed); every
-eval_interval steps the validation share of the train split ([data] val_share, never the
-test split) is evaluated, all of it; every checkpoint_interval steps, and at the
-end, RUN/ckpt.pt is written. Under torchrun every rank trains on its share of the shards and
+batch -> forward (autocast on CUDA) -> loss D(L) + beta D(H) (dofsynth.train.loss) -> backward
+-> clip -> step -> moving average of the weights ([train] ema). Every log_interval steps a row
+goes to RUN/log.csv (and TensorBoard when installed); every eval_interval steps the validation
+share of the train split ([data] val_share, never the test split) is evaluated, all of it, with
+the averaged weights, and the best so far go to RUN/best.pt (what `render --model` and `eval`
+use); every checkpoint_interval steps, and at the end, RUN/ckpt.pt is written. Under torchrun every rank trains on its share of the shards and
 DistributedDataParallel averages the gradients; only rank 0 writes files.
 
 Resume: running the same command again continues from the checkpoint's step, optimizer state,
@@ -118,7 +119,7 @@ def forward_loss(model, b: dict, cfg: Config):
         return loss, {"loss_depth": j_d, "loss_seg": j_s}, depth_mae(depth, b)[b["has_depth"] > 0]
     low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"], **full_res_signed(b, cfg))
     loss, j_low, j_high = deeplens_loss(low, high, b["target_lo"], b["target"],
-                                        cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps, cfg.loss.l1)
+                                        cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps, cfg.loss.l1, cfg.loss.kind)
     return loss, {"loss_low": j_low, "loss_high": j_high}, psnr_each(high, b["target"])
 
 
@@ -197,11 +198,14 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
     model = model.to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=t.lr, betas=tuple(t.betas),
                                   weight_decay=t.weight_decay)
-    step, epoch, batch_index, best_val = 0, 0, 0, None
+    ema = checkpoint.Ema(model, t.ema) if t.ema > 0 else None
+    step, epoch, batch_index, best = 0, 0, 0, None
     if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
-        step, epoch, batch_index, best_val = state["step"], state["epoch"], state["batch"] + 1, state["best_val"]
+        if ema is not None:
+            ema.module.load_state_dict(state.get("ema") or state["model"])
+        step, epoch, batch_index, best = state["step"], state["epoch"], state["batch"] + 1, state.get("best_score")
         checkpoint.set_rng_states(state["rng"])
         say(f"resuming {run_dir} at step {step}")
     last_saved = step if state is not None else None
@@ -270,6 +274,8 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
         scaler.step(optimizer)
         scaler.update()
         optimizer.zero_grad(set_to_none=True)
+        if ema is not None:
+            ema.update(checkpoint.unwrap(model), step)
         step += 1
         samples += b["image"].shape[0] * world
         bar.update(1)
@@ -284,10 +290,13 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
                    "samples_per_s": f"{samples / elapsed:.3g}", "elapsed_s": f"{elapsed:.1f}"}
         if eval_loader is not None and t.eval_interval > 0 and (step % t.eval_interval == 0 or last):
             t_eval = time.perf_counter()
-            val = evaluate(checkpoint.unwrap(model), eval_loader, cfg, device, autocast)
+            scored = checkpoint.unwrap(model) if ema is None else ema.module  # the average, when there is one
+            val = evaluate(scored, eval_loader, cfg, device, autocast)
             eval_s += time.perf_counter() - t_eval
             row.update({"step": step, "epoch": epoch, **{k: f"{v:.6g}" for k, v in val.items()}})
-            best_val = val["val_loss"] if best_val is None else min(best_val, val["val_loss"])
+            improved, best = checkpoint.better(val, best)
+            if improved and master:  # the weights validation chose (what `render --model RUN` uses)
+                checkpoint.save_best(run_dir / checkpoint.BEST, scored, step, cfg, val)
         if row and master:
             writer.writerow(row)
             log_file.flush()
@@ -300,7 +309,7 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
             if "val_loss" in row or progress.verbose():  # validation rows always, the rest with -v
                 say(" ".join(f"{k} {v}" for k, v in row.items()))
         if master and (step % t.checkpoint_interval == 0 or last):
-            checkpoint.save(ckpt_path, model, optimizer, step, epoch, batch_index, cfg, best_val)
+            checkpoint.save(ckpt_path, model, optimizer, step, epoch, batch_index, cfg, best, ema)
             last_saved = step
 
     # -- done ------------------------------------------------------------------------------------
@@ -312,4 +321,4 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
     if ddp:
         dist.barrier()
         dist.destroy_process_group()
-    return {"step": step, "loss": loss_value, "val_loss": row.get("val_loss"), "best_val": best_val}
+    return {"step": step, "loss": loss_value, "val_loss": row.get("val_loss"), "best_score": best}

@@ -1,40 +1,54 @@
-"""The DeepLens normalized loss.
+"""The training losses of the DoF networks: the paper's normalized loss J and the default, J's
+weighting with every pixel pulled toward its target.
 
-    J(X, Y) = sum |X - Y|^(a + 1) / (sum |X - Y|^a + eps),   a = 1.5 by default
+    J(X, Y) = sum |e|^(a + 1) / (sum |e|^a + eps),   e = X - Y,   a = 1.5 by default
 
-a mean absolute error weighted by |X - Y|^a: large errors (missed blur at depth edges) count
-more than an L1 loss would give them, and the value keeps the units of the images whatever the
-batch or image size. When X == Y it is exactly 0 and its gradient is 0 (|e|^a with a >= 1 is
-differentiable at 0), never NaN. Computed in float32 even under autocast.
-The training loss is J(L, T_lo) + beta * J(H, T).
+J is a mean absolute error weighted by |e|^a: large errors (missed blur at depth edges) count
+more than in an L1 loss, and the value keeps the units of the images whatever the batch or
+image size. It is 0 with zero gradient (never NaN) when X == Y. But its gradient at pixel i has
+the sign of (a + 1)|e_i| - a J: every error below a J / (a + 1) (0.6 J) is pushed *up*, so a
+network trained on J alone spreads a uniform error over every pixel (docs/training.md).
 
-Note: J is a mean of |e| weighted by |e|^a, so adding errors smaller than J itself *lowers* J:
-it fights the large errors and tolerates many small ones (PSNR can lag behind). [loss] l1 > 0
-adds a plain mean absolute error term that also pushes the small errors down.
+`[loss] kind = "weighted"` (the default) has J's value and its weights, held constant in the
+gradient: sum w |e| / (sum w + eps) with w = |e|^a not differentiated, so the gradient at pixel
+i is w_i sign(e_i) / (sum w + eps), toward the target at every pixel, largest at the largest
+errors; its only minimum is X == Y. `[loss] l1 > 0` adds a plain mean absolute error, which
+keeps pulling where the errors (and so their weights) are small. `kind = "j"`: the paper's J.
+All computed in float32 even under autocast. The training loss is D(L, T_lo) + beta * D(H, T)
+(+ the L1 term), D being J or its weighted form.
 """
 from __future__ import annotations
 
 import torch
 
+KINDS = ("weighted", "j")
 
-def normalized_loss(x: torch.Tensor, y: torch.Tensor, alpha: float = 1.5, eps: float = 1e-8) -> torch.Tensor:
-    """J over all elements of x and y (same shape) -> 0-d float32 tensor."""
+
+def normalized_loss(x: torch.Tensor, y: torch.Tensor, alpha: float = 1.5, eps: float = 1e-8,
+                    fixed_weights: bool = False) -> torch.Tensor:
+    """J over all elements of x and y (same shape) -> 0-d float32 tensor. fixed_weights: the
+    weights |e|^alpha are held constant in the gradient (the same value)."""
     if x.shape != y.shape:
         raise ValueError(f"loss inputs differ in shape: {tuple(x.shape)} vs {tuple(y.shape)}")
     if alpha < 0:
         raise ValueError(f"alpha must be >= 0, got {alpha}")
     e = (x.float() - y.float()).abs()
-    return (e ** (alpha + 1)).sum() / ((e ** alpha).sum() + eps)
+    w = e.detach() ** alpha if fixed_weights else e ** alpha
+    return (w * e).sum() / (w.sum() + eps)
 
 
 def deeplens_loss(low, high, target_lo, target, alpha: float = 1.5, beta: float = 1.0,
-                  eps: float = 1e-8, l1: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(total, J(L), J(H)) for L (B, 3, h, w) vs target_lo and H (B, 3, H, W) vs target.
+                  eps: float = 1e-8, l1: float = 0.0, kind: str = "j") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(total, D(L), D(H)) for L (B, 3, h, w) vs target_lo and H (B, 3, H, W) vs target, D being
+    J (kind "j") or J with its weights held constant (kind "weighted"; the same values).
 
-    total = J(L) + beta * J(H), plus l1 * (mean|L - T_lo| + beta * mean|H - T|) when l1 > 0.
+    total = D(L) + beta * D(H), plus l1 * (mean|L - T_lo| + beta * mean|H - T|) when l1 > 0.
     """
-    j_low = normalized_loss(low, target_lo, alpha, eps)
-    j_high = normalized_loss(high, target, alpha, eps)
+    if kind not in KINDS:
+        raise ValueError(f"loss kind {kind!r}: expected one of {', '.join(KINDS)}")
+    fixed = kind == "weighted"
+    j_low = normalized_loss(low, target_lo, alpha, eps, fixed)
+    j_high = normalized_loss(high, target, alpha, eps, fixed)
     total = j_low + beta * j_high
     if l1 > 0:
         total = total + l1 * ((low.float() - target_lo.float()).abs().mean()
