@@ -29,7 +29,8 @@ def scene():
 
 
 def params(**kw):
-    p = {"morph": [None, None], "shift": None, "edge_blur": None, "noise": None, "quantize": None}
+    p = {"morph": [None, None], "shift": None, "edge_blur": None, "noise": None, "quantize": None,
+         "swap": False, "fill": [None, None], "warp": None, "remap": None}
     p.update(kw)
     return p
 
@@ -102,13 +103,15 @@ def test_shift_blur_noise_and_quantization():
 
 def test_sampling_is_seeded_json_able_and_replays_exactly():
     d, layers = scene()
-    cfg = AugmentConfig(morph_prob=1.0, edge_blur_prob=0.5, noise_prob=0.5, quantize_prob=0.5, shift_prob=0.5)
+    cfg = AugmentConfig(morph_prob=1.0, edge_blur_prob=0.5, noise_prob=0.5, quantize_prob=0.5, shift_prob=0.5,
+                        swap_prob=0.5, fill_prob=0.5, warp_prob=0.5, remap_prob=0.5)
     a, pa = corrupt_disparity(d, layers, cfg, np.random.default_rng([7, 1]))
     b, pb = corrupt_disparity(d, layers, cfg, np.random.default_rng([7, 1]))
     assert np.array_equal(a, b) and pa == pb
     assert np.array_equal(apply_corruption(d, layers, json.loads(json.dumps(pa))), a)
-    kinds = {k for s in range(40) for k, v in sample_corruption(2, cfg, np.random.default_rng(s)).items() if v}
-    assert kinds == {"morph", "edge_blur", "noise", "quantize", "shift"}
+    kinds = {k for s in range(40) for k, v in sample_corruption(2, cfg, np.random.default_rng(s)).items()
+             if (any(v) if isinstance(v, list) else v)}
+    assert kinds == {"morph", "edge_blur", "noise", "quantize", "shift", "swap", "fill", "warp", "remap"}
     ops = {m["op"] for s in range(40) for m in sample_corruption(2, cfg, np.random.default_rng(s))["morph"]}
     kernels = {m["kernel"] for s in range(40) for m in sample_corruption(2, cfg, np.random.default_rng(s))["morph"]}
     assert ops == {"dilate", "erode"} and kernels <= set(range(3, 16, 2)) and len(kernels) > 3
@@ -140,3 +143,50 @@ def test_layers_from_a_record_and_its_cover_image():
         record_background({"background": {"mode": "spiral", "b0": 0.1, "b1": 0.0}}, (2, 2))
     with pytest.raises(ValueError, match="morphology"):
         morph_mask(np.ones((3, 3), bool), "open", 3)
+
+
+def test_the_kinds_of_real_estimates_swap_fill_warp_and_remap():
+    d, layers = scene()
+    swapped = apply_corruption(d, layers, params(swap=True))
+    assert swapped[20, 20] == MID and swapped[12, 12] == FRONT and swapped[3, 3] == MID and swapped[35, 35] == BG
+    # a front plane of two bars with a 3 px gap: a closing of 7 px fills the gap at the front's depth
+    bars = np.zeros((H, W), bool)
+    bars[5:35, 5:12] = bars[5:35, 15:22] = True
+    d2 = np.where(bars, np.float32(FRONT), np.float32(BG)).astype(np.float32)
+    two = DepthLayers(np.full((H, W), BG, np.float32), ((np.zeros((H, W), bool), MID), (bars, FRONT)))
+    filled = apply_corruption(d2, two, params(fill=[None, 7]))
+    assert (filled[8:32, 12:15] == FRONT).all() and filled[20, 30] == BG and filled[2, 13] == BG
+    assert np.array_equal(apply_corruption(d2, two, params(fill=[None, 1])), d2)   # a 1 px closing changes nothing
+    # a warp moves values (nearest: no new ones), smoothly, by about its std
+    warped = apply_corruption(d, layers, params(warp={"px": 2.0, "cells": 2, "seed": 5}))
+    assert set(np.unique(warped)) <= set(np.unique(d)) and not np.array_equal(warped, d)
+    assert abs(int((warped == FRONT).sum()) - int((d == FRONT).sum())) < 0.5 * (d == FRONT).sum()
+    assert np.array_equal(apply_corruption(d, layers, params(warp={"px": 0.0, "cells": 2, "seed": 5})), d)
+    # the remap by hand: 1.3 * d^0.5 - 0.1
+    remapped = apply_corruption(d, layers, params(remap={"scale": 1.3, "shift": -0.1, "gamma": 0.5}))
+    assert np.isclose(remapped[35, 35], 1.3 * BG ** 0.5 - 0.1, atol=1e-6)       # 0.311
+    assert np.isclose(remapped[12, 12], 1.3 * MID ** 0.5 - 0.1, atol=1e-6)      # 0.819
+    assert remapped[20, 20] == 1.0                                  # 1.3 * 0.894 - 0.1 = 1.063: clipped
+
+
+def test_realistic_depth_is_as_wrong_as_a_monocular_estimate(smoke_set):
+    """`--depth realistic` on the real generator's samples: a disparity MAE in 0.10-0.20, as the
+    DeepLens paper measured for real estimators (0.116-0.199); each kind alone stays below it."""
+    from dofsynth.codecs import decode_depth
+    from dofsynth.io import decode_image
+    from dofsynth.train.data import find_segments, raw_samples
+    from dofsynth.train.evaluate import depth_corruption
+
+    samples = []
+    for split in ("train", "test"):
+        for raw in raw_samples(find_segments(smoke_set, split), split):
+            cover = decode_image(raw["cover.png"], "cover")
+            samples.append((decode_depth(raw["depth.exr"], "depth"), layers_from_record(json.loads(raw["json"]), cover)))
+
+    def mae(which):
+        cfg = depth_corruption(which, AugmentConfig())
+        return np.mean([np.abs(corrupt_disparity(d, lay, cfg, np.random.default_rng([12345, i]))[0] - d).mean()
+                        for i, (d, lay) in enumerate(samples)])
+
+    assert len(samples) == 8 and 0.10 <= mae("realistic") <= 0.20
+    assert mae("gt") == 0.0 and all(mae(kind) < mae("realistic") for kind in ("morph", "warp", "remap", "fill"))

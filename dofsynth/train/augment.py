@@ -5,7 +5,12 @@ boundaries, so that at test time it tolerates the errors of a depth estimator: e
 plane's region is dilated or eroded by a random kernel. Dilated pixels take that plane's
 disparity; eroded-away pixels take the disparity of what lies behind. Further kinds, off by
 default: a Gaussian blur of the map (soft edges), additive noise, quantization (8-bit-like
-depth) and a small shift of the whole map.
+depth) and a small shift of the whole map; and the errors that make real monocular estimates
+wrong by a disparity MAE of 0.1-0.2 (docs/training.md measures each): the two foreground
+planes' depths swapped (wrong order), each plane's holes and gaps filled with its own disparity
+(a closing: the background between hair strands or limbs comes out at the object's depth), a
+smooth random warp of the whole map (boundaries displaced by several pixels, bent), and a
+monotone remap of the normalized disparity d -> clip(scale * d^gamma + shift).
 
 Only the disparity the network *sees* is corrupted; the targets stay as rendered. Everything
 here is numpy/cv2 (no torch) and takes an explicit `rng`. As elsewhere in dofsynth, parameters
@@ -65,10 +70,22 @@ def sample_corruption(n_planes: int, cfg, rng: np.random.Generator) -> dict:
     """Sample corruption parameters (a JSON-able dict) for a sample with `n_planes` foreground
     planes. `cfg` is a dofsynth.train.config.AugmentConfig (or anything with its fields)."""
     params: dict = {"morph": [None] * n_planes, "shift": None, "edge_blur": None, "noise": None,
-                    "quantize": None}
+                    "quantize": None, "swap": False, "fill": [None] * n_planes, "warp": None, "remap": None}
     if not cfg.enabled:
         return params
     r_morph, r_shift, r_blur, r_noise, r_quant = rng.spawn(5)
+    r_swap, r_fill, r_warp, r_remap = rng.spawn(4)  # after the first five: their draws stay as they were
+    params["swap"] = n_planes == 2 and bool(r_swap.random() < cfg.swap_prob)
+    for i in range(n_planes):
+        if r_fill.random() < cfg.fill_prob:
+            params["fill"][i] = _odd_between(r_fill, *cfg.fill_kernel)
+    if r_warp.random() < cfg.warp_prob:
+        params["warp"] = {"px": float(r_warp.uniform(*cfg.warp_px)), "cells": int(cfg.warp_cells),
+                          "seed": int(r_warp.integers(2**31))}
+    if r_remap.random() < cfg.remap_prob:
+        params["remap"] = {"scale": float(r_remap.uniform(*cfg.remap_scale)),
+                           "shift": float(r_remap.uniform(*cfg.remap_shift)),
+                           "gamma": float(r_remap.uniform(*cfg.remap_gamma))}
     for i in range(n_planes):
         if r_morph.random() < cfg.morph_prob:
             op = MORPH_OPS[int(r_morph.integers(2))]
@@ -101,8 +118,9 @@ def morph_mask(mask: np.ndarray, op: str, kernel: int) -> np.ndarray:
 def apply_corruption(disparity: np.ndarray, layers: DepthLayers, params: dict) -> np.ndarray:
     """Apply sampled corruption parameters to a clean disparity map (H, W) float32 in [0, 1].
 
-    Order: plane morphology (back to front), shift, edge blur, noise, quantization; the result
-    is clipped to [0, 1]. The input is not modified.
+    Order: plane depths swapped, plane morphology and filling (back to front), shift, warp,
+    edge blur, remap, noise, quantization; the result is clipped to [0, 1]. The input is not
+    modified. Parameters of kinds added later may be missing (older records): off.
     """
     d = np.array(disparity, dtype=np.float32, copy=True)
     if d.ndim != 2 or d.shape != layers.background.shape:
@@ -110,15 +128,22 @@ def apply_corruption(disparity: np.ndarray, layers: DepthLayers, params: dict) -
     morph = params.get("morph") or [None] * len(layers.planes)
     if len(morph) != len(layers.planes):
         raise ValueError(f"params['morph'] has {len(morph)} entries for {len(layers.planes)} planes")
+    fill = params.get("fill") or [None] * len(layers.planes)
+    depths = [pd for _, pd in layers.planes]
+    if params.get("swap"):  # wrong order: each plane seen at the other's depth
+        depths = depths[::-1]
     behind = layers.background.astype(np.float32)
-    for i, ((mask, plane_d), m) in enumerate(zip(layers.planes, morph)):
+    for i, ((mask, _), plane_d, m, k) in enumerate(zip(layers.planes, depths, morph, fill)):
         new_mask = mask if m is None else morph_mask(mask, m["op"], int(m["kernel"]))
+        if k is not None:
+            new_mask = new_mask | morph_mask(morph_mask(new_mask, "dilate", int(k)), "erode", int(k))
         in_front = np.zeros_like(mask)
         for later_mask, _ in layers.planes[i + 1:]:
             in_front |= later_mask
-        grown = new_mask & ~mask & ~in_front
+        if params.get("swap"):
+            d[mask & ~in_front] = plane_d
+        d[new_mask & ~mask & ~in_front] = plane_d  # grown (dilated, filled)
         shrunk = mask & ~new_mask & ~in_front
-        d[grown] = plane_d
         d[shrunk] = behind[shrunk]
         behind = np.where(new_mask, np.float32(plane_d), behind)
     if params.get("shift"):
@@ -126,8 +151,13 @@ def apply_corruption(disparity: np.ndarray, layers: DepthLayers, params: dict) -
         mat = np.float32([[1, 0, dx], [0, 1, dy]])
         d = cv2.warpAffine(d, mat, (d.shape[1], d.shape[0]), flags=cv2.INTER_NEAREST,
                            borderMode=cv2.BORDER_REPLICATE)
+    if params.get("warp"):
+        d = _warp(d, **params["warp"])
     if params.get("edge_blur"):
         d = cv2.GaussianBlur(d, (0, 0), sigmaX=float(params["edge_blur"]), borderType=cv2.BORDER_REFLECT)
+    if params.get("remap"):
+        r = params["remap"]
+        d = r["scale"] * np.clip(d, 0.0, 1.0) ** np.float32(r["gamma"]) + np.float32(r["shift"])
     if params.get("noise"):
         n = params["noise"]
         d = d + np.random.default_rng(n["seed"]).normal(0.0, n["std"], d.shape).astype(np.float32)
@@ -135,6 +165,16 @@ def apply_corruption(disparity: np.ndarray, layers: DepthLayers, params: dict) -
         q = int(params["quantize"]) - 1
         d = np.round(np.clip(d, 0.0, 1.0) * q) / q
     return np.clip(d, 0.0, 1.0).astype(np.float32)
+
+
+def _warp(d: np.ndarray, px: float, cells: int, seed: int) -> np.ndarray:
+    """The map resampled (nearest: edges stay sharp) through a smooth random displacement: normal
+    offsets of std `px` pixels on a (cells + 1)^2 grid over the frame, bicubically interpolated."""
+    h, w = d.shape
+    grid = np.random.default_rng(seed).normal(0.0, px, (2, cells + 1, cells + 1)).astype(np.float32)
+    fx, fy = (cv2.resize(g, (w, h), interpolation=cv2.INTER_CUBIC) for g in grid)
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    return cv2.remap(d, xs + fx, ys + fy, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
 
 
 def corrupt_disparity(disparity: np.ndarray, layers: DepthLayers, cfg, rng: np.random.Generator

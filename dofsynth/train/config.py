@@ -56,6 +56,17 @@ class AugmentConfig:
     quantize_levels: IntRange = key((16, 256), lo=2)
     shift_prob: float = key(0.0, lo=0.0, hi=1.0)                    # translate the whole map
     shift_max: int = key(2, lo=0)                                   # px, per axis
+    # the errors of real monocular estimates (docs/training.md gives each kind's disparity MAE)
+    swap_prob: float = key(0.0, lo=0.0, hi=1.0)                     # the two foreground planes' depths swapped
+    fill_prob: float = key(0.0, lo=0.0, hi=1.0)                     # per plane: holes and gaps closed at its depth
+    fill_kernel: IntRange = key((5, 31), lo=1)                      # closing kernel side range, px (odd)
+    warp_prob: float = key(0.0, lo=0.0, hi=1.0)                     # a smooth random warp of the map
+    warp_px: Range = key((2.0, 8.0), lo=0.0)                        # std of the displacement, px
+    warp_cells: int = key(4, lo=1)                                  # its control grid, cells per side
+    remap_prob: float = key(0.0, lo=0.0, hi=1.0)                    # d -> clip(scale * d^gamma + shift)
+    remap_scale: Range = key((0.7, 1.3), lo=0.0)
+    remap_shift: Range = key((-0.15, 0.15))
+    remap_gamma: Range = key((0.6, 1.6), lo=0.0, lo_open=True)
 
 
 @dataclass_kw

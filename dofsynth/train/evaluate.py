@@ -7,8 +7,9 @@ For every sample and every one of its DoF targets, the same disparity goes to
                  disparity = the given map) with the Look that made the targets (the
                  sample's aperture, method and options, highlight boost, linear light or not),
 and, as a floor, "all-in-focus" (the input itself). Which disparity (`depth`): "gt" (the
-clean one), "run" (the run's own training corruption), one corruption kind alone at
-probability 1 with the default ranges of [augment] (see `DEPTH_KINDS`), or a TOML file whose
+clean one), "run" (the run's own training corruption), "realistic" (the kinds of real estimates
+together, `REALISTIC`: disparity MAE about 0.18), one corruption kind alone at probability 1
+with the default ranges of [augment] (see `DEPTH_KINDS`), or a TOML file whose
 [augment] table is the setting (a shipped training config by name too, e.g. "train-learn");
 always drawn with the evaluation seed, so runs trained
 differently are scored on the same inputs. PSNR and SSIM (skimage.metrics, sRGB in [0, 1],
@@ -44,7 +45,12 @@ from dofsynth.train.depth import depth_errors, predict_disparity
 
 METHODS = ("network", "classical", "all-in-focus")
 DEPTH_KINDS = {"morph": "morph_prob", "edge_blur": "edge_blur_prob", "noise": "noise_prob",
-               "quantize": "quantize_prob", "shift": "shift_prob"}
+               "quantize": "quantize_prob", "shift": "shift_prob", "swap": "swap_prob", "fill": "fill_prob",
+               "warp": "warp_prob", "remap": "remap_prob"}
+# [augment] of `depth = "realistic"`: the errors of monocular estimates together, at a disparity MAE
+# like theirs (0.116-0.199 in the DeepLens paper; docs/training.md measures this setting and each kind)
+REALISTIC = {"morph_prob": 0.5, "morph_kernel": (3, 21), "swap_prob": 0.15, "fill_prob": 0.5, "warp_prob": 0.8,
+             "remap_prob": 1.0, "edge_blur_prob": 0.5, "edge_blur_sigma": (0.5, 2.0)}
 EDGE_STEP = 0.02  # a depth edge: neighbouring disparities differ by more (ramps change far less per pixel)
 
 
@@ -54,13 +60,15 @@ def depth_corruption(depth: str, run_augment: AugmentConfig) -> AugmentConfig:
         return AugmentConfig(enabled=False)
     if depth == "run":
         return run_augment
+    off = {f: 0.0 for f in DEPTH_KINDS.values()}
     if depth in DEPTH_KINDS:
-        off = {f: 0.0 for f in DEPTH_KINDS.values()}
         return dataclasses.replace(AugmentConfig(), **{**off, DEPTH_KINDS[depth]: 1.0})
+    if depth == "realistic":
+        return dataclasses.replace(AugmentConfig(), **{**off, **REALISTIC})
     try:
         return load(depth).augment  # a TOML file, or a shipped training config by name
     except FileNotFoundError:
-        raise ValueError(f"depth must be gt, run, one of {', '.join(DEPTH_KINDS)}, a .toml file with an "
+        raise ValueError(f"depth must be gt, run, realistic, one of {', '.join(DEPTH_KINDS)}, a .toml file with an "
                          f"[augment] table or a shipped training config's name, got {depth!r}") from None
 
 
