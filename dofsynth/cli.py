@@ -14,39 +14,26 @@ import sys
 import threading
 
 from dofsynth import __version__
-from dofsynth import commands, progress
+from dofsynth import commands, progress, stops
 
 
-class Terminated(BaseException):
-    """SIGTERM (what SLURM, systemd and Kubernetes send first), raised in the main thread so
-    that a run stops as on Ctrl-C: the lock released, temp files removed, one line printed."""
-
-
-_pending: list[int] = []   # a stop signal that came inside a callback, raised at the next import
+_pending: list[int] = []   # a stop signal kept back from where raising is unsafe (`_unsafe`)
 _closing: list[bool] = []  # set while main ends: a signal then changes nothing
-
-
-class Interrupted(KeyboardInterrupt):
-    """Ctrl-C as raised here. A subclass on purpose: CPython remembers a bare KeyboardInterrupt
-    that escaped code it ran for an extension (an import's PyRun_*) and, at exit, kills itself
-    with SIGINT, even when the interrupt was handled; it checks the exact type."""
-
-
-def _exception(signum: int) -> BaseException:
-    return Interrupted() if signum == signal.SIGINT else Terminated()
+_exception = stops.exception
 
 
 def _stop(signum, frame):
-    """Ctrl-C and SIGTERM as exceptions in the main thread (KeyboardInterrupt, Terminated).
-    One that lands in a finalizer or the weakref callback of an import lock (which swallow
-    exceptions: a traceback "Exception ignored" and the signal lost) is kept and raised by the
-    next import instead (`_on_import`; imports come in bursts while a command starts), once
-    the command line is parsed, or 50 ms later (`_again`), whichever comes first."""
+    """Ctrl-C and SIGTERM as exceptions in the main thread (Interrupted, Terminated), noted in
+    dofsynth.stops first. One that lands where raising is unsafe (`_unsafe`: inside an import,
+    a finalizer) is kept and raised by the next import statement outside any import
+    (`_on_import`), once the command line is parsed, or when `_again` finds the main thread
+    out of it (every 50 ms), whichever comes first."""
     if _closing:
         return
-    if _swallowing(frame):
+    stops.note(signum)
+    if _unsafe(frame):
         _pending.append(signum)
-        threading.Timer(0.05, _again, (signum,)).start()  # in case no import comes soon
+        threading.Timer(0.05, _again, (signum,)).start()
         return
     _pending.clear()
     raise _exception(signum)
@@ -58,20 +45,23 @@ def _again(signum: int) -> None:
         _thread.interrupt_main(signum)
 
 
-def _swallowing(frame) -> bool:
-    """Whether code at `frame` runs where Python ignores exceptions: a finalizer (__del__) or
-    the weakref callback of an import lock (its frames up the stack)."""
+def _unsafe(frame) -> bool:
+    """Whether an exception raised at `frame` could be lost or leave the import system broken:
+    anywhere inside an import (the import machinery and the module bodies it runs: a library
+    importing its parts may catch the error, or fail in its own way, e.g. a TypeError from a
+    half-imported module), or in a finalizer (__del__), whose exceptions Python ignores."""
     while frame is not None:
         code = frame.f_code
-        if code.co_name == "__del__" or (code.co_name == "cb" and code.co_filename.startswith("<frozen importlib")):
+        if code.co_name == "__del__" or code.co_filename.startswith("<frozen importlib"):
             return True
         frame = frame.f_back
     return False
 
 
 def _on_import(event: str, args) -> None:
-    """Audit hook: a kept stop signal is raised by the next import statement."""
-    if _pending and event == "import":
+    """Audit hook: a kept stop signal is raised by the next import statement that is not
+    itself inside an import (before that import starts)."""
+    if _pending and event == "import" and not _unsafe(sys._getframe(1)):
         signum = _pending[-1]
         _pending.clear()
         raise _exception(signum)
@@ -85,7 +75,7 @@ def _interrupted_by(exc: BaseException) -> BaseException | None:
     signal interrupted fails with ImportError("initialization failed"), a class body's
     __set_name__ with RuntimeError), or the stop itself; else None."""
     while exc is not None:
-        if isinstance(exc, (KeyboardInterrupt, Terminated)):
+        if isinstance(exc, (KeyboardInterrupt, stops.Terminated)):
             return exc
         exc = exc.__cause__ or exc.__context__
     return None
@@ -163,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     says how (`resume_hint`)."""
     main_thread = threading.current_thread() is threading.main_thread()
     _closing.clear()
+    stops.answered()
     if main_thread:  # first: a signal while the parser imports the commands is handled too
         if not _hooked:
             sys.addaudithook(_on_import)
@@ -174,14 +165,14 @@ def main(argv: list[str] | None = None) -> int:
         # the parser imports every command (numpy, OpenCV): Ctrl-C and SIGTERM wait until it is
         # built, then stop the run here, never inside the import machinery's callbacks
         # (the entry point, dofsynth.__main__, holds them from its first line already)
-        stops = {signal.SIGINT, signal.SIGTERM}
+        held = {signal.SIGINT, signal.SIGTERM}
         if main_thread:
-            signal.pthread_sigmask(signal.SIG_BLOCK, stops)
+            signal.pthread_sigmask(signal.SIG_BLOCK, held)
         try:
             parser = build_parser()
         finally:
             if main_thread:  # a signal held since the entry's imports is raised here
-                signal.pthread_sigmask(signal.SIG_UNBLOCK, stops)
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, held)
         args = parser.parse_args(argv)
         if not getattr(args, "func", None):
             parser.print_help()
@@ -194,7 +185,9 @@ def main(argv: list[str] | None = None) -> int:
         hint = getattr(args, "resume_hint", None)
         again = f"; {line}" if hint and (line := hint(args)) else ""
         name = f"dofsynth {args.command}"
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
+        stops.check()  # a stop whose exception was lost on its way still ends the run as a stop
+        return status
     except BaseException as exc:  # SystemExit (argparse, --help) goes on as it is
         if isinstance(exc, SystemExit):
             raise
@@ -241,7 +234,8 @@ def _stopped(name: str, again: str, stop: BaseException) -> int:
     whose finalizer then fails when it is collected, at exit: such "Exception ignored"
     tracebacks are consequences of the stop, so they are silenced for the rest of the run."""
     sys.unraisablehook = _after_stop
-    if isinstance(stop, Terminated):
+    stops.answered()
+    if isinstance(stop, stops.Terminated):
         print(f"{name}: terminated (SIGTERM){again}", file=sys.stderr)
         return 143
     print(f"{name}: interrupted{again}", file=sys.stderr)

@@ -9,7 +9,7 @@ from pathlib import Path
 PKG = Path(__file__).resolve().parents[1] / "dofsynth"
 # Every top-level module or stage package, earliest first: a module may import its own stage
 # and earlier ones only.
-STAGES = ["dofsynth", "dofsynth.spawned", "dofsynth.config", "dofsynth.files", "dofsynth.progress", "dofsynth.shipped",
+STAGES = ["dofsynth", "dofsynth.spawned", "dofsynth.config", "dofsynth.files", "dofsynth.progress", "dofsynth.stops", "dofsynth.shipped",
           "dofsynth.rng",
           "dofsynth.color", "dofsynth.image", "dofsynth.io", "dofsynth.optics", "dofsynth.codecs", "dofsynth.render",
           "dofsynth.record", "dofsynth.recipe", "dofsynth.assets", "dofsynth.scene", "dofsynth.compose",

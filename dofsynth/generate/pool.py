@@ -37,7 +37,7 @@ from multiprocessing import resource_tracker
 from multiprocessing.connection import wait
 from pathlib import Path
 
-from dofsynth import spawned
+from dofsynth import spawned, stops
 from dofsynth.generate.plan import ShardTask
 from dofsynth.generate.worker import generate_shard, library_for, peak_rss_mb, setup_process
 
@@ -156,6 +156,7 @@ def _dispatch(procs, conns, todo: list[ShardTask], limits: dict, on_samples):
         return None
 
     while left:
+        stops.check()  # a Ctrl-C whose exception was lost on its way (dofsynth.stops) stops here
         for i in sorted(idle):
             if todo:
                 t = todo.pop(0)
