@@ -433,3 +433,57 @@ def test_untouched_on_coarse_cells_is_conservative():
     exact = reach <= 0
     assert not (fast & ~exact).any()                # nothing reached is called free
     assert fast.sum() > 0.5 * exact.sum()           # and not much more is given up
+
+
+def test_the_untrained_hybrid_is_the_classical_renderer(setup):
+    """[model] kind = "hybrid": its correction starts at zero, so before training its output is
+    the classical render from the depth it is given, bit for bit (and the image itself where no
+    blur reaches, with [model] identity)."""
+    from dofsynth.train.classical import classical_render
+    from dofsynth.train.data import find_segments, full_res_signed, raw_samples, training_item
+    from dofsynth.train.models import HybridNet, untouched
+
+    _, data, _, _ = setup
+    cfg = tiny_config(model={"kind": "hybrid", "coc_ref": 4.0})
+    raw = next(raw_samples(find_segments(data, "train"), "train"))
+    item = training_item(raw, cfg, np.random.default_rng(3))
+    rec = json.loads(raw["json"])
+    image = item["image"].permute(1, 2, 0).numpy()
+    expect = classical_render(image, item["disparity"][0].numpy(), item["focus"], item["max_coc"], rec)
+    assert np.array_equal(item["classical"].permute(1, 2, 0).numpy(), expect.astype(np.float32))
+    one = {k: (v[None] if torch.is_tensor(v) else [v]) for k, v in item.items()}
+    for identity in (False, True):
+        model = HybridNet(replace(cfg, "model", identity=identity).model).eval()
+        with torch.no_grad():
+            low, high = model(one["image"], one["signed_lo"], cfg.data.levels, **full_res_signed(one, cfg))
+        kw = full_res_signed(one, cfg)
+        want = torch.where(untouched(kw["signed_hi"], 4.0), one["image"], one["classical"]) if identity else one["classical"]
+        assert torch.equal(high, want) and low.shape == one["target_lo"].shape
+    with pytest.raises(ValueError, match="classical"):
+        model(one["image"], one["signed_lo"], cfg.data.levels)
+
+
+def test_a_hybrid_run_trains_resumes_bit_identically_and_renders_a_photo(setup, tmp_path, shared_assets):
+    _, data, _, _ = setup
+    cfg_path = tmp_path / "hybrid.toml"
+    cfg_path.write_text(to_toml(tiny_config(model={"kind": "hybrid"})))
+    runs = {}
+    for name, stops in (("4", [None]), ("2+2", ["2", None])):
+        runs[name] = tmp_path / name
+        for stop in stops:
+            args = ["train", str(cfg_path), "--data", str(data), "--run", str(runs[name]), "--device", "cpu"]
+            assert main(args + (["--steps", stop] if stop else [])) == 0
+    a, b = checkpoint.load(runs["4"] / "ckpt.pt"), checkpoint.load(runs["2+2"] / "ckpt.pt")
+    assert a["step"] == b["step"] == 4
+    assert all(torch.equal(a["model"][k], b["model"][k]) and torch.equal(a["ema"][k], b["ema"][k]) for k in a["model"])
+    assert any(a["model"][k].abs().sum() > 0 for k in a["model"] if k.startswith("head."))  # it learned a correction
+    photo = tmp_path / "photo.png"
+    srgb = cv2.imread(str(shared_assets / "bg" / "kodak_kodim01.png"))
+    cv2.imwrite(str(photo), cv2.resize(srgb, (96, 64), interpolation=cv2.INTER_AREA))
+    depth = tmp_path / "depth.png"
+    cv2.imwrite(str(depth), np.tile(np.linspace(0, 255, 96).astype(np.uint8), (64, 1)))
+    out = tmp_path / "hybrid.png"
+    assert main(["render", str(photo), "--depth", str(depth), "--focus", "0.5", "--model", str(runs["4"]),
+                 "--out", str(out)]) == 0
+    img = cv2.imread(str(out))
+    assert img.shape == (64, 96, 3) and not np.array_equal(img, cv2.imread(str(photo)))

@@ -23,7 +23,7 @@ import torch
 from dofsynth.files import AtomicFile
 from dofsynth.train.config import Config, from_dict
 from dofsynth.train.depth import DepthNet
-from dofsynth.train.models import DeepLensNet
+from dofsynth.train.models import DeepLensNet, HybridNet
 from dofsynth.train.weights import first_line, load_weights_file
 
 CHECKPOINT = "ckpt.pt"
@@ -119,9 +119,11 @@ def load(path: str | Path, map_location="cpu") -> dict:
     return state
 
 
-def build_model(cfg: Config) -> DeepLensNet | DepthNet:
-    """The untrained network of the config's [train] task."""
-    return DepthNet(cfg.depth) if cfg.train.task == "depth" else DeepLensNet(cfg.model)
+def build_model(cfg: Config) -> DeepLensNet | HybridNet | DepthNet:
+    """The untrained network of the config's [train] task (and [model] kind)."""
+    if cfg.train.task == "depth":
+        return DepthNet(cfg.depth)
+    return HybridNet(cfg.model) if cfg.model.kind == "hybrid" else DeepLensNet(cfg.model)
 
 
 def weights_path(run: str | Path) -> Path:

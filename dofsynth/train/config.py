@@ -71,10 +71,12 @@ class AugmentConfig:
 
 @dataclass_kw
 class ModelConfig:
+    kind: str = key("deeplens", choices=("deeplens", "hybrid"))  # the paper's networks, or the classical render
+    #                                                       # from the given depth plus a learned correction
     feat_channels: int = key(8, lo=1)                       # per convolution of the per-channel extractor
     feat_dilations: tuple[int, ...] = key((1, 2, 4, 8), lo=1)  # one 3x3 conv each; c = feat_channels * len(...)
-    kp_width: int = key(32, lo=1)                           # kernel predictor (a small U-Net) base width
-    kp_depth: int = key(3, lo=0)                            # its number of x2 downsamplings
+    kp_width: int = key(32, lo=1)                           # kernel predictor (a small U-Net) base width (hybrid:
+    kp_depth: int = key(3, lo=0)                            # the correction's U-Net); its number of x2 downsamplings
     features: str = key("channel", choices=("channel", "joint"))  # per-colour conv stack (paper) or one RGB stack
     raw_feature: bool = key(False)                          # the image itself is one of the c features (+1)
     kernel: str = key("free", choices=("free", "blur"))      # "blur": kernels >= 0 summing to 1 (softmax)

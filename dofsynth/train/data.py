@@ -10,6 +10,7 @@ One item (all float32 tensors, channels first; s = 2**levels, crop side C, low-r
     target_lo  (3, C/s, C/s)  the DoF target, area-downsampled
     target     (3, C, C)      the DoF target (never corrupted)
     disparity  (1, C, C)      the corrupted disparity in [0, 1], high res (for baselines)
+    classical  (3, C, C)      [model] kind = "hybrid" only: the classical render from it
     focus, max_coc, target_index, key, shard, corruption (JSON text of the sampled parameters)
 
 Colour: with [data] color = "srgb" (the default, as in the paper) images stay sRGB-encoded in
@@ -26,10 +27,9 @@ shares them as evenly as possible). A reader opens only the shards its share tou
 reader decodes and crops a sample before its shuffle buffer ([data] shuffle_buffer crops of
 about 10 * C**2 bytes each), so memory does not grow with the image size. Everything random
 about a sample (target, crop, corruption) comes from its own stream, `stream_rng(seed, "item",
-epoch, split id, index)` (dofsynth.rng.STREAMS), so it does not depend on the number of
-workers or ranks. A resumed epoch
-starts at its batch on every rank (`set_epoch(epoch, skip_batches=k)`): the skipped samples
-are not decoded, and what follows is what the uninterrupted run would have read.
+epoch, split id, index)` (dofsynth.rng.STREAMS), so it does not depend on the number of workers
+or ranks. A resumed epoch starts at its batch on every rank (`set_epoch(epoch, skip_batches=k)`):
+the skipped samples are not decoded, and what follows is what the uninterrupted run would read.
 """
 from __future__ import annotations
 
@@ -52,12 +52,13 @@ from dofsynth.color import srgb_to_linear
 from dofsynth.io import decode_image, unit_float
 from dofsynth.manifest import load_manifest, manifest_shard_infos, recipe_from_manifest
 from dofsynth.qa.marks import rejected
-from dofsynth.optics.coc import coc_radius
 from dofsynth.codecs import decode_depth
 from dofsynth.rng import SPLIT_ID, sample_key, stream_int, stream_rng
 from dofsynth.shards import read_shard
 from dofsynth.train.augment import corrupt_disparity, layers_from_record
+from dofsynth.train.classical import classical_input, look_of
 from dofsynth.train.config import Config, replace
+from dofsynth.train.models import signed_disparity
 
 PARTS = ("all", "fit", "val")  # a whole split; train without / only its validation share
 
@@ -138,12 +139,6 @@ def area_downsample(x: np.ndarray, factor: int) -> np.ndarray:
     return x.reshape(h // factor, factor, w // factor, factor, *x.shape[2:]).mean(axis=(1, 3))
 
 
-def signed_disparity(disparity, focus: float, max_coc: float, coc_ref: float):
-    """The network's depth input: the signed CoC over the largest aperture's, c / r_max =
-    (disparity - focus) * max_coc / coc_ref."""
-    return coc_radius(disparity, focus, max_coc / coc_ref)
-
-
 def _chw(x: np.ndarray) -> torch.Tensor:
     x = x[:, :, None] if x.ndim == 2 else x
     return torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1), dtype=np.float32))
@@ -212,16 +207,18 @@ def _decode_crop(sample: dict, key: str, cfg: Config, rng, crop, target, augment
     t = record["targets"][target]
     return {**codes, "disparity": np.ascontiguousarray(corrupted[win]), "focus": float(t["focus"]),
             "max_coc": float(t["max_coc"]), "target_index": target, "key": key,
-            "shard": str(sample.get("__url__", "")), "corruption": json.dumps(params, sort_keys=True)}
+            "shard": str(sample.get("__url__", "")), "corruption": json.dumps(params, sort_keys=True),
+            "look": look_of(record)}
 
 
 def full_res_signed(b: dict, cfg) -> dict:
-    """The DeepLensNet keywords signed_hi (the signed disparity of the batch's corrupted
-    disparity at full resolution) and coc_px (r_max: full-resolution px per unit of it)."""
+    """The networks' keywords signed_hi (the signed disparity of the batch's corrupted
+    disparity at full resolution), coc_px (r_max: full-resolution px per unit of it) and, for
+    the hybrid, classical (its render from that disparity)."""
     focus, max_coc = (torch.as_tensor(b[k], dtype=torch.float32, device=b["disparity"].device).reshape(-1, 1, 1, 1)
                       for k in ("focus", "max_coc"))
     signed = signed_disparity(b["disparity"], focus, max_coc, cfg.model.coc_ref)
-    return {"signed_hi": signed, "coc_px": cfg.model.coc_ref}
+    return {"signed_hi": signed, "coc_px": cfg.model.coc_ref, "classical": b.get("classical")}
 
 
 def finish_item(c: dict, cfg: Config) -> dict:
@@ -232,7 +229,8 @@ def finish_item(c: dict, cfg: Config) -> dict:
         image, dof = srgb_to_linear(image), srgb_to_linear(dof)
     corrupted = c["disparity"]
     signed_lo = signed_disparity(area_downsample(corrupted, s), c["focus"], c["max_coc"], cfg.model.coc_ref)
-    return {
+    hybrid = {"classical": _chw(classical_input(c, cfg.data.color))} if cfg.model.kind == "hybrid" else {}
+    return {**hybrid,
         "image": _chw(image), "image_lo": _chw(area_downsample(image, s)),
         "signed_lo": _chw(signed_lo),
         "target_lo": _chw(area_downsample(dof, s)), "target": _chw(dof),

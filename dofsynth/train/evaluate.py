@@ -36,9 +36,8 @@ from dofsynth.color import linear_to_srgb, srgb_to_linear
 from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
 from dofsynth.io import decode_image, normalize_disparity
 from dofsynth.codecs import decode_depth
-from dofsynth.optics.aperture import aperture_from_dict
-from dofsynth.render.look import Look, render_photo
 from dofsynth.train.checkpoint import load_model
+from dofsynth.train.classical import classical_render
 from dofsynth.train.config import AugmentConfig, load
 from dofsynth.train.data import excluded, find_segments, full_res_signed, raw_samples, sample_rng, training_item
 from dofsynth.train.depth import depth_errors, predict_disparity
@@ -74,17 +73,6 @@ def depth_corruption(depth: str, run_augment: AugmentConfig) -> AugmentConfig:
 
 def _hwc(t: torch.Tensor) -> np.ndarray:
     return t.detach().float().cpu().numpy().transpose(1, 2, 0)
-
-
-def classical_render(image_srgb: np.ndarray, disparity: np.ndarray, focus: float, max_coc: float,
-                     record: dict) -> np.ndarray:
-    """The single-image classical render, sRGB-encoded: one plane, alpha 1, the given disparity
-    map, rendered as the record's targets were (dofsynth.render.look.render_photo with the
-    record's Look: its method and options, highlight boost and inverse, chromatic scales,
-    linear light or the naive baseline) through the record's aperture."""
-    out = render_photo(srgb_to_linear(image_srgb), disparity, focus, max_coc,
-                       aperture_from_dict(record["aperture"]), Look.from_dict(record.get("options", {})))
-    return linear_to_srgb(out)
 
 
 def edge_band(disparity: np.ndarray, radius: float) -> np.ndarray:
@@ -141,7 +129,7 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
             band = edge_band(clean[: target.shape[0], : target.shape[1]], item["max_coc"])
             with torch.inference_mode():
                 one = {k: (v[None].to(device) if torch.is_tensor(v) else [v]) for k, v in item.items()
-                       if k in ("image", "signed_lo", "image_lo", "disparity", "focus", "max_coc")}
+                       if k in ("image", "signed_lo", "image_lo", "disparity", "focus", "max_coc", "classical")}
                 _, high = model(one["image"], one["signed_lo"], cfg.data.levels, one["image_lo"],
                                 **full_res_signed(one, cfg))
             outputs = {"network": to_srgb(_hwc(high[0])), "all-in-focus": image}

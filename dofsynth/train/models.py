@@ -35,7 +35,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dofsynth.optics.coc import coc_radius
 from dofsynth.train.config import ModelConfig
+
+
+def signed_disparity(disparity, focus, max_coc, coc_ref: float):
+    """The networks' depth input (numpy or torch): the signed CoC over the largest aperture's,
+    c / r_max = (disparity - focus) * max_coc / coc_ref."""
+    return coc_radius(disparity, focus, max_coc / coc_ref)
 
 
 def size_chain(size: tuple[int, int], steps: int) -> list[tuple[int, int]]:
@@ -253,7 +260,8 @@ class DeepLensNet(nn.Module):
     def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
                 image_lo: torch.Tensor | None = None, *, sizes: list | None = None,
                 rows: int | None = None, signed_hi: torch.Tensor | None = None,
-                coc_px: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+                coc_px: float = 0.0, classical: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        # classical: the hybrid's input (HybridNet), not used here
         if sizes is None:
             sizes = size_chain(tuple(image.shape[-2:]), steps)
         if tuple(sizes[-1]) != tuple(image.shape[-2:]):
@@ -272,6 +280,37 @@ class DeepLensNet(nn.Module):
         if self.identity and signed_hi is not None:  # where nothing is blurred the answer is the input
             result = torch.where(untouched(signed_hi, coc_px), image, result)
         return low, result
+
+
+class HybridNet(nn.Module):
+    """[model] kind = "hybrid" (in the spirit of BokehMe): `forward(image, signed_lo, steps,
+    classical=C)` -> (L, H) with H = C + U(image, C, signed_hi), C the classical renderer's image
+    from the same (possibly wrong) disparity, and U a U-Net ([model] kp_width, kp_depth) whose
+    last layer starts at zero, so the untrained model *is* the classical renderer and training
+    only learns where to correct it (depth edges, wrong depth, what a blurred foreground hides).
+    L is H area-reduced to the lowest size, so the loss is the same as DeepLensNet's. The other
+    arguments are DeepLensNet's; with [model] identity, H is the image where no blur reaches."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.body = UNet(7, cfg.kp_width, cfg.kp_depth, cfg.norm)
+        self.head = nn.Conv2d(cfg.kp_width, 3, 1)
+        nn.init.zeros_(self.head.weight), nn.init.zeros_(self.head.bias)
+        self.identity = cfg.identity
+
+    def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
+                image_lo: torch.Tensor | None = None, *, sizes: list | None = None, rows: int | None = None,
+                signed_hi: torch.Tensor | None = None, coc_px: float = 0.0,
+                classical: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        if classical is None:
+            raise ValueError("the hybrid model needs the classical render of the image (classical=)")
+        sizes = size_chain(tuple(image.shape[-2:]), steps) if sizes is None else sizes
+        _check(image, 3, "image"), _check(classical, 3, "classical", image.shape[-2:])
+        signed = signed_hi if signed_hi is not None else bilinear(signed_lo, tuple(image.shape[-2:]))
+        result = classical + self.head(self.body(torch.cat([image, classical, signed], dim=1)))
+        if self.identity and signed_hi is not None:
+            result = torch.where(untouched(signed_hi, coc_px), image, result)
+        return area_resize(result, sizes[0]), result
 
 
 def _check(x: torch.Tensor, channels: int, name: str, size=None) -> None:

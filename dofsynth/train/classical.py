@@ -1,0 +1,42 @@
+"""The classical renderer as the networks see it: the evaluation's baseline and the hybrid
+model's input (dofsynth.train.models.HybridNet).
+
+One plane, alpha 1, the given (possibly wrong) disparity map, rendered as a record's targets
+were (dofsynth.render.look.render_photo with the record's Look: method and options, highlight
+boost and inverse, chromatic scales, linear light or the naive baseline) through the record's
+aperture; images are sRGB-encoded in [0, 1], (H, W, 3) float32.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from dofsynth.color import linear_to_srgb, srgb_to_linear
+from dofsynth.io import unit_float
+from dofsynth.optics.aperture import aperture_from_dict
+from dofsynth.render.look import Look, render_photo
+
+
+def look_of(record: dict) -> str:
+    """What `classical_render` needs of a record (its aperture and options), as JSON text."""
+    return json.dumps({"aperture": record["aperture"], "options": record.get("options", {})}, sort_keys=True)
+
+
+def classical_render(image_srgb: np.ndarray, disparity: np.ndarray, focus: float, max_coc: float,
+                     record: dict) -> np.ndarray:
+    """The single-image classical render of `image_srgb` with the look of `record` (a sample
+    record, or `json.loads(look_of(record))`), sRGB-encoded."""
+    out = render_photo(srgb_to_linear(np.asarray(image_srgb, np.float32)), np.asarray(disparity, np.float32),
+                       focus, max_coc, aperture_from_dict(record["aperture"]),
+                       Look.from_dict(record.get("options", {})))
+    return linear_to_srgb(out)
+
+
+def classical_input(item: dict, color: str) -> np.ndarray:
+    """The hybrid model's input for a decoded training crop (dofsynth.train.data.decode_crop: its
+    image codes, corrupted disparity, focus, max_coc and look): the classical render from that
+    disparity, in the networks' colour space ([data] color: "srgb" or "linear")."""
+    out = classical_render(unit_float(item["image"], item["key"]), item["disparity"], item["focus"],
+                           item["max_coc"], json.loads(item["look"]))
+    return srgb_to_linear(out) if color == "linear" else out
