@@ -410,22 +410,26 @@ def _holds_stop_signals(pid: int) -> bool:
     return held & want == want
 
 
-def _session_run(*args) -> subprocess.Popen:
+def _session_run(*args, env=None) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "dofsynth", *map(str, args)], cwd=ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_as_from_a_terminal)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_as_from_a_terminal,
+                            env=env)
 
 
 @pytest.mark.parametrize("phase", ["0.2 s", "0.6 s", "1.2 s", "workers importing", "workers rendering"])
 def test_a_parent_killed_at_any_start_up_phase_leaves_no_process(recipe_path, tmp_path, phase):
     """SIGKILL of the parent while it imports, builds the library, spawns its workers, while
     they import and while they render: 2 s later nothing of the run is left (workers are
-    bound to their parent before their heavy imports; the resource tracker follows them)."""
-    out = tmp_path / "out"
-    proc = _session_run("generate", _long_recipe(recipe_path, tmp_path), "--out", out, "--quiet", "--workers", "2")
+    bound to their parent before their heavy imports; the resource tracker follows them), and
+    once both workers render, not the library's temp file either (removed when they had read it)."""
+    out, temp = tmp_path / "out", tmp_path / "temp"
+    temp.mkdir()
+    proc = _session_run("generate", _long_recipe(recipe_path, tmp_path), "--out", out, "--quiet", "--workers", "2",
+                        env={**os.environ, "TMPDIR": str(temp)})
     if phase == "workers importing":
         assert _until(lambda: _children(proc.pid), 300, 0.002), "no worker started"
-    elif phase == "workers rendering":
-        assert _until(lambda: _shard_temps(out), 300), "no shard was ever being written"
+    elif phase == "workers rendering":  # both of them: each has loaded the library
+        assert _until(lambda: len(_shard_temps(out)) == 2, 300), "the two workers never rendered at once"
     else:
         time.sleep(float(phase.split()[0]))
     os.kill(proc.pid, signal.SIGKILL)
@@ -433,6 +437,8 @@ def test_a_parent_killed_at_any_start_up_phase_leaves_no_process(recipe_path, tm
     t0 = time.monotonic()
     left = _until(lambda: not _session_procs(proc.pid), 2.0, 0.02)
     assert left, f"{_session_procs(proc.pid)} still running {time.monotonic() - t0:.1f} s after the parent died"
+    if phase == "workers rendering":
+        assert not list(temp.glob("dofsynth-pool-*")), "the library's temp folder outlived the run"
 
 
 @pytest.mark.parametrize("delay", [0.1, 0.5, 1.0, 2.0])

@@ -4,7 +4,9 @@ the shards they are handed and die with their parent.
 Fault behaviour, by design:
 - Start-up arguments are small (the recipe and paths): the asset library is pickled once into
   a private temp file that each worker reads, so a worker that dies while starting never
-  leaves the parent blocked writing a large pickle into its pipe.
+  leaves the parent blocked writing a large pickle into its pipe. The file (25 MB for the
+  built-in assets) is removed as soon as every worker has read it, so a parent killed while
+  they render leaves nothing in the temp folder.
 - The parent waits on every worker's pipe and process sentinel at once: a worker that dies
   at any moment (killed, out of memory) ends the run as soon as the parent is scheduled
   (0.2-0.5 s measured on 2 cores, docs/generate.md) with `WorkerDied` naming it and its
@@ -27,6 +29,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import pickle
+import shutil
 import signal
 import tempfile
 import threading
@@ -106,7 +109,9 @@ def run_pool(workers: int, recipe, out, tasks: list[ShardTask], limits: dict, on
     that died or crashed; on any exit every worker is stopped and joined first."""
     ctx = mp.get_context("spawn")
     n = min(workers, len(tasks))
-    with tempfile.TemporaryDirectory(prefix="dofsynth-pool-") as tmp:
+    tmp = tempfile.mkdtemp(prefix="dofsynth-pool-")
+    drop = lambda: shutil.rmtree(tmp, ignore_errors=True)  # noqa: E731
+    try:
         lib_path = Path(tmp) / "library.pkl"
         lib_path.write_bytes(pickle.dumps(library_for(recipe)))
         payload = pickle.dumps((_worker_main, (recipe, str(out), str(lib_path))))  # unpickled once bound
@@ -122,16 +127,22 @@ def run_pool(workers: int, recipe, out, tasks: list[ShardTask], limits: dict, on
                     child_end.close()
                     procs.append(p)
                     conns.append(parent_end)
-            yield from _dispatch(procs, conns, list(tasks), limits, on_samples)
+            yield from _dispatch(procs, conns, list(tasks), limits, on_samples, all_ready=drop)
             finished = True
         finally:
             _stop(procs, conns, finished)
+    finally:
+        drop()
 
 
-def _dispatch(procs, conns, todo: list[ShardTask], limits: dict, on_samples):
+def _dispatch(procs, conns, todo: list[ShardTask], limits: dict, on_samples, all_ready=None):
+    """Hand out the shards and yield the finished ones; `all_ready()` is called once every
+    worker has loaded the library (its temp file is then no longer needed: a run killed later
+    leaves none behind)."""
     by_path = {t.path: t for t in todo}
     busy: dict[int, ShardTask | None] = {i: None for i in range(len(procs))}  # worker -> its shard
     idle: set[int] = set()
+    ready: set[int] = set()
     left = len(todo)
 
     def handle(i, msg):
@@ -140,6 +151,9 @@ def _dispatch(procs, conns, todo: list[ShardTask], limits: dict, on_samples):
         kind = msg[0]
         if kind == "ready":
             idle.add(i)
+            ready.add(i)
+            if len(ready) == len(procs) and all_ready is not None:
+                all_ready()
         elif kind == "sample":
             if on_samples is not None:
                 on_samples(msg[1], msg[2])
