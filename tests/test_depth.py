@@ -274,8 +274,8 @@ def depth_run(tmp_path_factory, smoke_set):
 def test_train_writes_a_depth_run_that_resumes_and_eval_reports_mae(depth_run, smoke_set, capsys):
     with open(depth_run / "log.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert [int(r["step"]) for r in rows] == [10, 20]
-    assert all(r["loss_depth"] and r["loss_seg"] and not r["loss_low"] for r in rows)
+    assert [int(r["step"]) for r in rows] == [0, 10, 20]             # step 0: the start, validated
+    assert rows[0]["val_mae"] and all(r["loss_depth"] and r["loss_seg"] and not r["loss_low"] for r in rows[1:])
     assert main(["train", "train-depth-tiny", "--data", str(smoke_set), "--run", str(depth_run), "--steps", "20"]) == 0
     assert "already trained to step 20" in capsys.readouterr().out
     assert main(["eval", str(depth_run), "--data", str(smoke_set)]) == 0
@@ -348,4 +348,4 @@ def test_two_processes_under_torchrun_train_the_depth_network(smoke_set, tmp_pat
     assert json.loads((run / "env.json").read_text())["world_size"] == 2
     with open(run / "log.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert [r["step"] for r in rows] == ["2"] and rows[0]["loss_depth"] and rows[0]["val_mae"]   # one writer
+    assert [r["step"] for r in rows] == ["0", "2"] and rows[1]["loss_depth"] and rows[1]["val_mae"]   # one writer

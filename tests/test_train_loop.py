@@ -57,9 +57,10 @@ def test_a_run_folder_holds_config_log_and_checkpoint(setup):
     assert state["step"] == 4 and set(state) >= {"model", "optimizer", "step", "config", "rng"}
     assert from_dict(state["config"]) == stored
     rows = _rows(run)
-    assert [int(r["step"]) for r in rows] == [1, 2, 3, 4]
-    assert rows[1]["val_loss"] and rows[3]["val_psnr"] and not rows[0]["val_loss"]   # eval every 2 steps
-    assert all(np.isfinite(float(r["loss"])) for r in rows)
+    assert [int(r["step"]) for r in rows] == [0, 1, 2, 3, 4]          # step 0: the start, validated
+    assert rows[0]["val_psnr"] and not rows[0]["loss"]
+    assert rows[2]["val_loss"] and rows[4]["val_psnr"] and not rows[1]["val_loss"]   # eval every 2 steps
+    assert all(np.isfinite(float(r["loss"])) for r in rows[1:])
     assert json.loads((run / "env.json").read_text())["device"] == "cpu"
 
 
@@ -412,7 +413,7 @@ def test_two_processes_under_torchrun_train_together_and_rank0_writes(setup, tmp
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert json.loads((run / "env.json").read_text())["world_size"] == 2
     assert checkpoint.load(run / "ckpt.pt")["step"] == 2
-    assert [r["step"] for r in _rows(run)] == ["1", "2"]          # one writer
+    assert [r["step"] for r in _rows(run)] == ["0", "1", "2"]     # one writer (step 0: the start, validated)
 
 
 def test_untouched_on_coarse_cells_is_conservative():

@@ -256,8 +256,37 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
     model.train()
     t0 = time.perf_counter()
     samples, loss_value, row, eval_s = 0, None, {}, 0.0
+
+    def validate(step: int, epoch: int) -> dict:
+        """The validation row of `step`; the scored weights go to best.pt when they are the best."""
+        nonlocal best, eval_s
+        t_eval = time.perf_counter()
+        scored = checkpoint.unwrap(model) if ema is None else ema.module  # the average, when there is one
+        val = evaluate(scored, eval_loader, cfg, device, autocast)
+        eval_s += time.perf_counter() - t_eval
+        improved, best = checkpoint.better(val, best)
+        if improved and master:  # the weights validation chose (what `render --model RUN` uses)
+            checkpoint.save_best(run_dir / checkpoint.BEST, scored, step, cfg, val)
+        return {"step": step, "epoch": epoch, **{k: f"{v:.6g}" for k, v in val.items()}}
+
+    def log(row: dict) -> None:
+        writer.writerow(row)
+        log_file.flush()
+        if tb is not None:
+            for k in LOG_FIELDS[2:-2]:
+                if k in row:
+                    tb.add_scalar(k, float(row[k]), row["step"])
+        if "loss" in row:
+            bar.set_postfix_str(f"step {row['step']}, loss {row['loss']}")
+        if "val_loss" in row or progress.verbose():  # validation rows always, the rest with -v
+            say(" ".join(f"{k} {v}" for k, v in row.items()))
+
     bar = progress.bar(end - step, "train", unit="step", enabled=master)  # steps: an epoch's short last batch
     #                                                                     # must not leave the bar short of 100 %
+    if eval_loader is not None and step == 0:  # the start competes too (the hybrid's is the classical render)
+        row = validate(0, epoch)
+        if master:
+            log(row)
     while step < end:
         lr = learning_rate(step, cfg)
         for group in optimizer.param_groups:
@@ -289,25 +318,9 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
                    **{k: f"{v.item():.6g}" for k, v in terms.items()},
                    "samples_per_s": f"{samples / elapsed:.3g}", "elapsed_s": f"{elapsed:.1f}"}
         if eval_loader is not None and t.eval_interval > 0 and (step % t.eval_interval == 0 or last):
-            t_eval = time.perf_counter()
-            scored = checkpoint.unwrap(model) if ema is None else ema.module  # the average, when there is one
-            val = evaluate(scored, eval_loader, cfg, device, autocast)
-            eval_s += time.perf_counter() - t_eval
-            row.update({"step": step, "epoch": epoch, **{k: f"{v:.6g}" for k, v in val.items()}})
-            improved, best = checkpoint.better(val, best)
-            if improved and master:  # the weights validation chose (what `render --model RUN` uses)
-                checkpoint.save_best(run_dir / checkpoint.BEST, scored, step, cfg, val)
+            row.update(validate(step, epoch))
         if row and master:
-            writer.writerow(row)
-            log_file.flush()
-            if tb is not None:
-                for k in LOG_FIELDS[2:-2]:
-                    if k in row:
-                        tb.add_scalar(k, float(row[k]), step)
-            if "loss" in row:
-                bar.set_postfix_str(f"step {step}, loss {row['loss']}")
-            if "val_loss" in row or progress.verbose():  # validation rows always, the rest with -v
-                say(" ".join(f"{k} {v}" for k, v in row.items()))
+            log(row)
         if master and (step % t.checkpoint_interval == 0 or last):
             checkpoint.save(ckpt_path, model, optimizer, step, epoch, batch_index, cfg, best, ema)
             last_saved = step
