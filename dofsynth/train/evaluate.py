@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from dofsynth.color import linear_to_srgb, srgb_to_linear
+from dofsynth.color import linear_to_srgb
 from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
 from dofsynth.io import decode_image, normalize_disparity
 from dofsynth.codecs import decode_depth
