@@ -29,7 +29,7 @@ def register(subparsers) -> None:
     p.add_argument("--depth", default="run", metavar="WHICH",
                    help="the disparity everyone is given: gt (clean), run (the run's own training "
                         "corruption), realistic (the errors of monocular estimates together: disparity MAE "
-                        "about 0.18), morph, edge_blur, noise, quantize, shift, swap, fill, warp or remap "
+                        "about 0.14), morph, edge_blur, noise, quantize, shift, swap, fill, warp or remap "
                         "(that kind alone, always, with the default [augment] ranges), or a TOML file whose "
                         "[augment] table is the setting (a training config, or a shipped one by name: "
                         "train-learn); default: run")

@@ -8,7 +8,7 @@ For every sample and every one of its DoF targets, the same disparity goes to
                  sample's aperture, method and options, highlight boost, linear light or not),
 and, as a floor, "all-in-focus" (the input itself). Which disparity (`depth`): "gt" (the
 clean one), "run" (the run's own training corruption), "realistic" (the kinds of real estimates
-together, `REALISTIC`: disparity MAE about 0.18), one corruption kind alone at probability 1
+together, `REALISTIC`: disparity MAE about 0.14), one corruption kind alone at probability 1
 with the default ranges of [augment] (see `DEPTH_KINDS`), or a TOML file whose
 [augment] table is the setting (a shipped training config by name too, e.g. "train-learn");
 always drawn with the evaluation seed, so runs trained
