@@ -19,7 +19,6 @@ from dofsynth import commands, progress, stops
 
 _pending: list[int] = []   # a stop signal kept back from where raising is unsafe (`_unsafe`)
 _closing: list[bool] = []  # set while main ends: a signal then changes nothing
-_exception = stops.exception
 
 
 def _stop(signum, frame):
@@ -36,7 +35,7 @@ def _stop(signum, frame):
         threading.Timer(0.05, _again, (signum,)).start()
         return
     _pending.clear()
-    raise _exception(signum)
+    raise stops.exception(signum)
 
 
 def _again(signum: int) -> None:
@@ -64,7 +63,7 @@ def _on_import(event: str, args) -> None:
     if _pending and event == "import" and not _unsafe(sys._getframe(1)):
         signum = _pending[-1]
         _pending.clear()
-        raise _exception(signum)
+        raise stops.exception(signum)
 
 
 _hooked: list[bool] = []

@@ -35,11 +35,6 @@ def note(signum: int) -> None:
     _noted.append(signum)
 
 
-def pending() -> int | None:
-    """The last stop signal noted and not answered, else None."""
-    return _noted[-1] if _noted else None
-
-
 def answered() -> None:
     """The run has stopped (or starts afresh): nothing is pending any more."""
     _noted.clear()

@@ -36,6 +36,7 @@ import threading
 import time
 import traceback
 from contextlib import contextmanager
+from functools import partial
 from multiprocessing import resource_tracker
 from multiprocessing.connection import wait
 from pathlib import Path
@@ -110,7 +111,7 @@ def run_pool(workers: int, recipe, out, tasks: list[ShardTask], limits: dict, on
     ctx = mp.get_context("spawn")
     n = min(workers, len(tasks))
     tmp = tempfile.mkdtemp(prefix="dofsynth-pool-")
-    drop = lambda: shutil.rmtree(tmp, ignore_errors=True)  # noqa: E731
+    drop = partial(shutil.rmtree, tmp, ignore_errors=True)
     try:
         lib_path = Path(tmp) / "library.pkl"
         lib_path.write_bytes(pickle.dumps(library_for(recipe)))

@@ -23,14 +23,20 @@ def look_of(record: dict) -> str:
     return json.dumps({"aperture": record["aperture"], "options": record.get("options", {})}, sort_keys=True)
 
 
-def classical_render(image_srgb: np.ndarray, disparity: np.ndarray, focus: float, max_coc: float,
-                     record: dict) -> np.ndarray:
-    """The single-image classical render of `image_srgb` with the look of `record` (a sample
-    record, or `json.loads(look_of(record))`), sRGB-encoded."""
-    out = render_photo(srgb_to_linear(np.asarray(image_srgb, np.float32)), np.asarray(disparity, np.float32),
+# The look of a photo at inference (no record to take it from): a disc aperture, the default options.
+PHOTO_LOOK = {"aperture": {"kind": "disk"}}
+
+
+def classical_render(image: np.ndarray, disparity: np.ndarray, focus: float, max_coc: float,
+                     record: dict, color: str = "srgb") -> np.ndarray:
+    """The single-image classical render of `image` with the look of `record` (a sample record,
+    `json.loads(look_of(record))` or PHOTO_LOOK); image and result in `color`: "srgb"
+    (sRGB-encoded) or "linear"."""
+    image = np.asarray(image, np.float32)
+    out = render_photo(srgb_to_linear(image) if color == "srgb" else image, np.asarray(disparity, np.float32),
                        focus, max_coc, aperture_from_dict(record["aperture"]),
                        Look.from_dict(record.get("options", {})))
-    return linear_to_srgb(out)
+    return linear_to_srgb(out) if color == "srgb" else out
 
 
 def classical_input(item: dict, color: str) -> np.ndarray:
