@@ -17,6 +17,8 @@ import numpy as np
 from dofsynth.optics.aperture import Aperture, cat_eye_offset
 from dofsynth.optics.coc import coc_radius
 from dofsynth.optics.kernel import coverage
+from dofsynth.render.frame import compact
+from dofsynth.render.planes import alpha_box
 
 FIXED_POINT_ITERATIONS = 5
 
@@ -53,20 +55,40 @@ def inside_clip(x, y, oy, ox, h: float, share: float):
 
 
 def _source(cmap, px, py, gx, gy):
-    """Where sensor pixels (gx, gy) see a plane of CoC `cmap` (px; a number or a map) through
-    aperture point p: x' with x = x' + p c(x') (for a map by fixed-point iteration)."""
-    mx, my = gx - px * cmap, gy - py * cmap  # a map: start from c at the sensor point
-    if np.ndim(cmap) != 0:
+    """Where sensor pixels (gx: a (1, w) row of columns, gy: an (h, 1) column of rows) see a
+    plane of CoC `cmap` through aperture point p: x' with x = x' + p c(x'). `cmap` (px): a
+    number; a ramp kept as one row or column (`frame.compact`), solved along its own axis by
+    fixed-point iteration x' <- x - p c(x') (np.interp, edge-clamped); or a full map, iterated
+    the same way with bilinear edge-replicated lookups. (mx, my) broadcast to (h, w)."""
+    if np.ndim(cmap) == 0:
+        return gx - px * cmap, gy - py * cmap
+    h, w = cmap.shape
+    if h == 1 or w == 1:  # a ramp: c depends on x alone (a row) or on y alone (a column)
+        line, along, step = (cmap[0], gx[0], px) if h == 1 else (cmap[:, 0], gy[:, 0], py)
+        grid, q = np.arange(line.size, dtype=np.float64), along.astype(np.float64)
+        c = np.interp(q, grid, line)
         for _ in range(FIXED_POINT_ITERATIONS):
-            c = cv2.remap(cmap, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            mx, my = gx - px * c, gy - py * c
+            c = np.interp(q - step * c, grid, line)
+        c = c.astype(np.float32)[None, :] if h == 1 else c.astype(np.float32)[:, None]
+        return gx - px * c, gy - py * c
+    gx, gy = np.broadcast_arrays(gx, gy)
+    c = cmap[gy.astype(np.intp), gx.astype(np.intp)]  # start from c at the sensor point
+    mx, my = gx - px * c, gy - py * c
+    for _ in range(FIXED_POINT_ITERATIONS):
+        c = cv2.remap(cmap, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        mx, my = gx - px * c, gy - py * c
     return mx, my
 
 
-def _warp(pm, mx, my):
-    """The (H, W, C) plane sampled at source positions (mx, my), edge-replicated beyond the
-    frame, as in the layered renderer."""
-    return cv2.remap(pm, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+def _warp(src, mx, my, dst=None):
+    """`src` (H, W[, C]) sampled at source positions (mx, my) (broadcasting to the output's
+    (h, w)), bilinear, edge-replicated beyond the frame as in the layered renderer."""
+    mx, my = np.broadcast_arrays(mx, my)
+    return cv2.remap(src, np.ascontiguousarray(mx, np.float32), np.ascontiguousarray(my, np.float32),
+                     cv2.INTER_LINEAR, dst=dst, borderMode=cv2.BORDER_REPLICATE)
+
+
+_FLUSH = 64  # aperture points summed in float32 before they are added to the float64 total
 
 
 def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, options) -> np.ndarray:
@@ -81,19 +103,32 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, optio
     spreads it over its clipped disc; occlusion (1 - alpha) is not clipped.
 
     Slow: cost grows with the number of aperture points (about pi * (2 * max|c|)^2 for a disk
-    by default). Meant as the reference for the fast per-plane renderer and for small images.
+    by default), each a warp of the backmost plane over the frame and of each cutout over its
+    alpha box grown by its largest CoC (nothing of it lands further). Meant as the reference
+    for the faster renderers and for small images.
     """
     H, W = planes[0].shape
-    gy, gx = np.mgrid[0:H, 0:W].astype(np.float32)
-    prepared = []
+    rows, cols = np.arange(H, dtype=np.float32)[:, None], np.arange(W, dtype=np.float32)[None, :]
+    prepared = []  # (premultiplied colour [+ alpha], CoC, region it lands in)
     cmax = 0.0
-    for plane in planes:
+    for i, plane in enumerate(planes):
         a = np.asarray(plane.alpha, np.float32)
-        pm = np.concatenate([np.asarray(plane.rgb, np.float32) * a[:, :, None], a[:, :, None]], axis=2)
         d = plane.constant_disparity()
-        c = np.float32(coc_radius(d, focus, max_coc)) if d is not None else coc_radius(plane.disparity_map(), focus, max_coc)
-        cmax = max(cmax, float(np.max(np.abs(c))))
-        prepared.append((np.ascontiguousarray(pm), c))
+        c = (np.float32(coc_radius(d, focus, max_coc)) if d is not None
+             else coc_radius(compact(np.asarray(plane.disparity_map(), np.float32)), focus, max_coc))
+        reach = float(np.max(np.abs(c)))
+        cmax = max(cmax, reach)
+        rgb = np.asarray(plane.rgb, np.float32)
+        if i == 0:  # the backmost plane: only its colour counts (it is composited over black)
+            prepared.append((np.ascontiguousarray(rgb * a[:, :, None]), c, (0, H, 0, W)))
+            continue
+        box = alpha_box(a)
+        if box is None:
+            continue
+        r = int(math.ceil(reach)) + 2
+        region = (max(box[0] - r, 0), min(box[1] + r, H), max(box[2] - r, 0), min(box[3] + r, W))
+        pm = np.concatenate([rgb * a[:, :, None], a[:, :, None]], axis=2)
+        prepared.append((np.ascontiguousarray(pm), c, region))
     px, py, wt, h, share = aperture_samples(aperture, cmax, options.samples)
     strength = options.cat_eye
     if strength:  # the share of the aperture inside each frame position's clip circle (a map)
@@ -102,17 +137,28 @@ def render_exact(planes, focus: float, max_coc: float, aperture: Aperture, optio
         for x, y, w, f in zip(px, py, wt, share):
             area += np.float32(w) * inside_clip(x, y, oy, ox, h, f)
     acc = np.zeros((H, W, 3), np.float64)
-    for x, y, w, f in zip(px, py, wt, share):
-        comp = np.zeros((H, W, 3), np.float32)
-        for pm, c in prepared:
-            mx, my = _source(c, x, y, gx, gy)
-            warped = _warp(pm, mx, my)
-            colour, a = warped[:, :, :3], warped[:, :, 3:4]
+    part = np.zeros((H, W, 3), np.float32)
+    comp = np.empty((H, W, 3), np.float32)
+    for n, (x, y, w, f) in enumerate(zip(px, py, wt, share)):
+        for k, (pm, c, (y0, y1, x0, x1)) in enumerate(prepared):
+            mx, my = _source(c, x, y, cols[:, x0:x1], rows[y0:y1])
+            if k == 0:
+                colour = _warp(pm, mx, my, dst=comp)
+            else:
+                warped = _warp(pm, mx, my)
+                colour, a = warped[:, :, :3], warped[:, :, 3:4]
             if strength:  # the light counts where p lies in the clip circle of its source point
-                sx, sy = np.clip(mx, 0, W - 1), np.clip(my, 0, H - 1)  # (replicated beyond the frame)
+                sx, sy = (np.clip(v, lo, hi) for v, lo, hi in ((mx, 0, W - 1), (my, 0, H - 1)))  # replicated beyond
+                sx, sy = np.broadcast_arrays(sx, sy)
                 oy, ox = cat_eye_offset((H, W), strength, sy, sx, options.margin)
-                inside = inside_clip(x, y, oy, ox, h, f)
-                colour = colour * (inside / np.maximum(_warp(area, sx, sy), 1e-12)).astype(np.float32)[:, :, None]
-            comp = colour + (1.0 - a) * comp
-        acc += w * comp
+                inside = inside_clip(x, y, oy, ox, h, f) / np.maximum(_warp(area, sx, sy), 1e-12)
+                colour *= inside.astype(np.float32)[:, :, None]
+            if k:
+                under = comp[y0:y1, x0:x1]
+                under *= 1.0 - a
+                under += colour
+        cv2.scaleAdd(comp, float(w), part, dst=part)
+        if (n + 1) % _FLUSH == 0 or n + 1 == len(px):
+            acc += part
+            part[...] = 0.0
     return np.ascontiguousarray(acc.transpose(2, 0, 1), dtype=np.float32)
