@@ -183,7 +183,7 @@ def convolve_stack(x: np.ndarray, kernels: np.ndarray, pairs, valid: bool = Fals
     m0, m1 = (h, w) if valid else (h + kh - 1, w + kw - 1)
     n0, n1 = sfft.next_fast_len(m0, real=True), sfft.next_fast_len(m1, real=True)
     spec = sfft.rfft2(x, s=(n0, n1))
-    kspec = sfft.rfft2(kernels, s=(n0, n1))
+    kspec = sfft.fft(sfft.rfft(kernels, n=n1, axis=-1), n=n0, axis=-2)  # = rfft2, without the zero rows' transforms
     ki, ci = (list(v) for v in zip(*pairs))
     prod = kspec[ki]
     prod *= spec[ci]

@@ -81,13 +81,19 @@ def cells(aperture: Aperture, n: int) -> tuple[tuple[Cell, float], ...]:
 
 
 @lru_cache(maxsize=64)
-def halves(aperture: Aperture) -> tuple[tuple[Cell, float], tuple[Cell, float]]:
-    """The left (x < 0) and right (x > 0) halves of the aperture with their area shares: the
-    two views of a dual-pixel sensor, whose weighted sum is the whole aperture's image."""
+def halves(aperture: Aperture, axis: str = "x") -> tuple[tuple[Cell, float], tuple[Cell, float]]:
+    """The two halves of the aperture with their area shares: left (x < 0) and right (x > 0),
+    the two views of a dual-pixel sensor, whose weighted sum is the whole aperture's image; or
+    with axis "y", top (y < 0) and bottom (y > 0)."""
     total = float(coverage(aperture, _AREA_RADIUS).sum())
-    left, right = Cell(aperture, -1.0, 0.0, -1.0, 1.0), Cell(aperture, 0.0, 1.0, -1.0, 1.0)
-    wl = float(coverage(left, _AREA_RADIUS).sum()) / total
-    return (left, wl), (right, 1.0 - wl)
+    if axis == "x":
+        first, second = Cell(aperture, -1.0, 0.0, -1.0, 1.0), Cell(aperture, 0.0, 1.0, -1.0, 1.0)
+    elif axis == "y":
+        first, second = Cell(aperture, -1.0, 1.0, -1.0, 0.0), Cell(aperture, -1.0, 1.0, 0.0, 1.0)
+    else:
+        raise ValueError(f"axis must be 'x' or 'y', got {axis!r}")
+    w = float(coverage(first, _AREA_RADIUS).sum()) / total
+    return (first, w), (second, 1.0 - w)
 
 
 def whole(options):
@@ -191,44 +197,31 @@ def _blur_varying_cutout(plane, focus: float, max_coc: float, cell: Cell, option
     return (0, H, 0, W), out
 
 
-def _compact_disparity(plane):
+def compact_disparity(plane):
     """The plane's disparity: a number when it is constant, else its map kept compact."""
     d = plane.constant_disparity()
     return d if d is not None else compact(np.asarray(plane.disparity_map(), np.float32))
 
 
-def render_cell(planes, focus: float, max_coc: float, cell: Cell, options) -> np.ndarray:
-    """The planes (back to front) seen through one cell of the aperture: linear RGB (3, H, W).
-
-    Each plane is blurred by the cell's kernel and composited "over" the result R of the
-    planes behind it, to second order in the aperture point p within the cell: the mean of
-    a_p R_p over the cell is a R - Cov(a, R), and Cov(a, R) = E[a_p (p - p_cell)] . dR/dp, the
-    alpha's first moments (`kernel_moments`, exact for a hard edge) times R's gradient in p
-    (carried along the composite: d/dp of over(P, R) = dP - R da + (1 - a) dR). This is what
-    makes few cells accurate where a blurred edge occludes a blurred background."""
-    H, W = planes[0].shape
-    back = planes[0]
-    R = _blur_back(back, focus, max_coc, cell, options, H, W)
-    c = coc_radius(_compact_disparity(back), focus, max_coc)
+def _composite(R: np.ndarray, c_back, layers) -> np.ndarray:
+    """The cutouts composited "over" R (3, H, W), the backmost plane through one cell (in
+    place), to second order in the aperture point p within the cell: the mean of a_p R_p over
+    the cell is a R - Cov(a, R), and Cov(a, R) = E[a_p (p - p_cell)] . dR/dp, the alpha's first
+    moments (`kernel_moments`, exact for a hard edge) times R's gradient in p (carried along the
+    composite: d/dp of over(P, R) = dP - R da + (1 - a) dR). `layers`: per cutout, back to
+    front, (its region (y0, y1, x0, x1), its stack of `_blur_cutout` there, its CoC: a number
+    or its map over the region); c_back: the backmost plane's CoC (a number or a map)."""
     G = None
-    boxes = [(p, plane_box(p, np.asarray(p.alpha, np.float32))) for p in planes[1:]]
-    boxes = [(p, box) for p, box in boxes if box is not None]  # fully transparent planes add nothing
-    for i, (plane, box) in enumerate(boxes):
+    c = c_back
+    for i, ((y0, y1, x0, x1), st, c_next) in enumerate(layers):
         if G is None:
             G = _p_gradient(R, c)
-        d = plane.constant_disparity()
-        if d is not None:
-            c = coc_radius(d, focus, max_coc)
-            (y0, y1, x0, x1), st = _blur_cutout(plane, box, c, cell, H, W)
-        else:
-            c = coc_radius(plane.disparity_map(), focus, max_coc)
-            (y0, y1, x0, x1), st = _blur_varying_cutout(plane, focus, max_coc, cell, options, H, W)
-            c = c[y0:y1, x0:x1]
+        c = c_next
         r, g = R[:, y0:y1, x0:x1], G[:, :, y0:y1, x0:x1]
         pm, a, m = st[:3], st[3], st[4:]
         cov = m[0] * g[0]
         cov += m[1] * g[1]
-        if i < len(boxes) - 1:  # the gradient in p of the new composite, for the planes in front
+        if i < len(layers) - 1:  # the gradient in p of the new composite, for the planes in front
             d_st = _p_gradient(st[:4], c)
             d_st[:, :3] -= r[None] * d_st[:, 3:4]
             d_st[:, :3] += (1.0 - a) * g
@@ -239,11 +232,101 @@ def render_cell(planes, focus: float, max_coc: float, cell: Cell, options) -> np
     return R
 
 
-def _weighted(planes, weights: np.ndarray, r0: int, c0: int, y0: int, y1: int, x0: int, x1: int):
-    """The planes cut to rows y0:y1, columns x0:x1, their colour times `weights` (placed at rows
-    r0, columns c0 of the frame; 0 elsewhere in the cut)."""
-    w = np.zeros((y1 - y0, x1 - x0, 1), np.float32)
-    w[r0 - y0 : r0 - y0 + weights.shape[0], c0 - x0 : c0 - x0 + weights.shape[1], 0] = weights
+def _cutouts(planes):
+    """The cutouts that add something (alpha not 0 everywhere), each with its alpha box."""
+    boxes = [(p, plane_box(p, np.asarray(p.alpha, np.float32))) for p in planes[1:]]
+    return [(p, box) for p, box in boxes if box is not None]
+
+
+def _back_cells(back, focus: float, max_coc: float, parts, options, H: int, W: int) -> list:
+    """The backmost plane through each cell of `parts`: (3, H, W) each. Constant disparity and
+    within BATCH_MAX: one batch (its channels transformed once for every cell's kernel)."""
+    d = back.constant_disparity()
+    c = None if d is None else coc_radius(d, focus, max_coc)
+    s = 0 if c is None else support_radius(c)
+    K = len(parts)
+    if c is None or s == 0 or K == 1 or 3 * K * (H + 2 * s) * (W + 2 * s) > BATCH_MAX or not stack_fits(H + 2 * s, W + 2 * s, 1, 1):
+        return [_blur_back(back, focus, max_coc, cell, options, H, W) for cell, _ in parts]
+    rgb, alpha = np.asarray(back.rgb, np.float32), np.asarray(back.alpha, np.float32)
+    src = np.empty((3, H + 2 * s, W + 2 * s), np.float32)
+    for ch in range(3):
+        grab(rgb[:, :, ch], -s, H + s, -s, W + s, True, src[ch])
+    if not is_one(alpha):
+        src *= grab(alpha, -s, H + s, -s, W + s, True)
+    ks = _full_kernels(parts, c)[0::3]
+    return list(convolve_stack(src, ks, [(k, ch) for k in range(K) for ch in range(3)], valid=True).reshape(K, 3, H, W))
+
+
+def _cutout_cells(plane, box, focus: float, max_coc: float, parts, options, H: int, W: int) -> list:
+    """A cutout through each cell of `parts`: (region, stack, CoC) each, as `_composite` takes
+    them. Constant disparity and within BATCH_MAX: one batch."""
+    d = plane.constant_disparity()
+    if d is None:
+        out = []
+        for cell, _ in parts:
+            (y0, y1, x0, x1), st = _blur_varying_cutout(plane, focus, max_coc, cell, options, H, W)
+            out.append(((y0, y1, x0, x1), st, coc_radius(plane.disparity_map(), focus, max_coc)[y0:y1, x0:x1]))
+        return out
+    c = coc_radius(d, focus, max_coc)
+    s = support_radius(c)
+    K = len(parts)
+    (gy0, gy1, gx0, gx1), (oy0, oy1, ox0, ox1) = cutout_regions(box, s, H, W)
+    h, w = gy1 - gy0, gx1 - gx0
+    if s == 0 or K == 1 or 6 * K * (h + 2 * s) * (w + 2 * s) > BATCH_MAX or not stack_fits(h, w, 2 * s + 1, 2 * s + 1):
+        return [(*_blur_cutout(plane, box, c, cell, H, W), c) for cell, _ in parts]
+    a, rgb = np.asarray(plane.alpha, np.float32), np.asarray(plane.rgb, np.float32)
+    src = np.empty((4, h, w), np.float32)
+    grab(a, gy0, gy1, gx0, gx1, True, src[3])
+    for ch in range(3):
+        np.multiply(grab(rgb[:, :, ch], gy0, gy1, gx0, gx1, True), src[3], out=src[ch])
+    out = np.zeros((K, 6, oy1 - oy0, ox1 - ox0), np.float32)
+    pairs = [(3 * k + kk, ch) for k in range(K) for kk, ch in _PAIRS]
+    full = convolve_stack(src, _full_kernels(parts, c), pairs)
+    add_clipped(out.reshape(6 * K, *out.shape[2:]), gy0 - s - oy0, gx0 - s - ox0, full)
+    return [((oy0, oy1, ox0, ox1), out[k], c) for k in range(K)]
+
+
+BATCH_MAX = 1 << 26  # float32 values a batched blur of one plane for all cells may hold (256 MiB)
+
+
+def _full_kernels(parts, c: float):
+    """(3K, 2S+1, 2S+1) float32: per cell k of `parts`, its kernel of CoC c and its two
+    centred alpha-moment kernels (`_cell_kernels`, placed back in the full (2S+1)^2 array)."""
+    s = support_radius(c)
+    out = np.zeros((3 * len(parts), 2 * s + 1, 2 * s + 1), np.float32)
+    for k, (cell, _) in enumerate(parts):
+        ks, (ky0, kx0, ky1, kx1) = _cell_kernels(cell, c)
+        out[3 * k : 3 * k + 3, ky0:ky1, kx0:kx1] = ks
+    return out
+
+
+def render_cells(planes, focus: float, max_coc: float, parts, options) -> np.ndarray:
+    """The planes (back to front) seen through each cell of `parts` ((cell, share) pairs),
+    each cell's image weighted by its share and added: linear RGB (3, H, W). Each plane is
+    blurred by every cell's kernel (constant-disparity planes in one batch: `_back_cells`,
+    `_cutout_cells`), then per cell composited (`_composite`): what makes few cells accurate
+    where a blurred edge occludes a blurred background."""
+    H, W = planes[0].shape
+    back = planes[0]
+    R = _back_cells(back, focus, max_coc, parts, options, H, W)
+    layers = [_cutout_cells(p, box, focus, max_coc, parts, options, H, W) for p, box in _cutouts(planes)]
+    c_back = coc_radius(compact_disparity(back), focus, max_coc)
+    acc = np.zeros((3, H, W), np.float32)
+    for k, (_, w) in enumerate(parts):
+        img = _composite(R[k], c_back, [plane[k] for plane in layers])
+        img *= np.float32(w)
+        acc += img
+    return acc
+
+
+def render_cell(planes, focus: float, max_coc: float, cell: Cell, options) -> np.ndarray:
+    """The planes (back to front) seen through one cell of the aperture: linear RGB (3, H, W)."""
+    return render_cells(planes, focus, max_coc, ((cell, 1.0),), options)
+
+
+def cut_planes(planes, y0: int, y1: int, x0: int, x1: int) -> list[Plane]:
+    """The planes cut to rows y0:y1, columns x0:x1 of the frame (views; boxes moved with them,
+    an empty one where a box misses the cut)."""
     out = []
     for p in planes:
         d = p.disparity if np.ndim(p.disparity) == 0 else np.broadcast_to(p.disparity, p.shape)[y0:y1, x0:x1]
@@ -251,8 +334,16 @@ def _weighted(planes, weights: np.ndarray, r0: int, c0: int, y0: int, y1: int, x
         if p.box is not None:
             by0, by1, bx0, bx1 = p.box
             box = (max(by0, y0) - y0, max(min(by1, y1) - y0, 0), max(bx0, x0) - x0, max(min(bx1, x1) - x0, 0))
-        out.append(Plane(np.asarray(p.rgb, np.float32)[y0:y1, x0:x1] * w, np.asarray(p.alpha)[y0:y1, x0:x1], d, box))
+        out.append(Plane(np.asarray(p.rgb)[y0:y1, x0:x1], np.asarray(p.alpha)[y0:y1, x0:x1], d, box))
     return out
+
+
+def _weighted(planes, weights: np.ndarray, r0: int, c0: int, y0: int, y1: int, x0: int, x1: int):
+    """The planes cut to rows y0:y1, columns x0:x1, their colour times `weights` (placed at rows
+    r0, columns c0 of the frame; 0 elsewhere in the cut)."""
+    w = np.zeros((y1 - y0, x1 - x0, 1), np.float32)
+    w[r0 - y0 : r0 - y0 + weights.shape[0], c0 - x0 : c0 - x0 + weights.shape[1], 0] = weights
+    return [replace(p, rgb=np.asarray(p.rgb, np.float32) * w) for p in cut_planes(planes, y0, y1, x0, x1)]
 
 
 def render_subaperture(planes, focus: float, max_coc: float, aperture: Aperture, options) -> np.ndarray:
@@ -271,17 +362,9 @@ def render_subaperture(planes, focus: float, max_coc: float, aperture: Aperture,
         return render_layered(planes, focus, max_coc, aperture, options)
     parts = cells(aperture, n)
     if not options.cat_eye:
-        acc = None
-        for cell, w in parts:
-            img = render_cell(planes, focus, max_coc, cell, options)
-            img *= np.float32(w)
-            if acc is None:
-                acc = img
-            else:
-                acc += img
-        return acc
+        return render_cells(planes, focus, max_coc, parts, options)
     H, W = planes[0].shape
-    reach = max(float(np.max(np.abs(coc_radius(_compact_disparity(p), focus, max_coc)))) for p in planes)
+    reach = max(float(np.max(np.abs(coc_radius(compact_disparity(p), focus, max_coc)))) for p in planes)
     plan = eye_plan(parts, (H, W), options.cat_eye, options.margin, reach)
     hy, hx = plan.hats(np.arange(H), np.arange(W))
     s = 2 * support_radius(reach)  # what a part's sources reach, and the planes that reach it
