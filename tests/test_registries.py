@@ -230,7 +230,7 @@ def test_dofsynth_render_refuses_options_its_method_ignores(tmp_path, capsys):
     assert main(common + ["--cells", "4"]) == 2
     assert "--cells applies to --method subaperture, not --method layered" in capsys.readouterr().err
     assert main(common + ["--method", "nope"]) == 2
-    assert "method must be one of layered, subaperture, exact" in capsys.readouterr().err
+    assert "method must be one of layered, subaperture, adaptive, exact" in capsys.readouterr().err
     assert main(common + ["--method", "subaperture", "--cells", "2"]) == 0
 
 

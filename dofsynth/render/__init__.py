@@ -11,6 +11,9 @@ turns validated planes into linear RGB:
 - "subaperture" (dofsynth.render.subaperture): the aperture cut into n x n cells, the layered
   method per cell with the part of the kernel in it, the cells added; shows what a blurred
   edge reveals behind it, at about the cell count times the layered cost;
+- "adaptive" (dofsynth.render.adaptive): the layered method, and the sub-aperture one only in
+  the tiles where the layered one errs (a blurred cutout's edge over a blurred plane that
+  varies); the default of the 18K and shared-assets recipes;
 - "exact" (dofsynth.render.exact): the aperture sampled, every plane warped and composited per
   aperture point, averaged; handles partial occlusion at depth edges, slow.
 A method is one `Method` entry: its function (validated planes, focus, max_coc, aperture,
@@ -29,6 +32,7 @@ import cv2
 import numpy as np
 
 from dofsynth.optics.aperture import Aperture, Disk
+from dofsynth.render.adaptive import render_adaptive
 from dofsynth.render.exact import render_exact
 from dofsynth.render.layered import LEVEL_RATIO, render_layered
 from dofsynth.render.planes import Plane, validate_planes
@@ -91,10 +95,13 @@ class Method:
 METHODS: dict[str, Method] = {
     "layered": Method(render_layered, "layered-v5", ("level_step", "level_ratio", "margin"),
                       summary="each plane blurred on its own and composited back to front (fast)"),
-    "subaperture": Method(render_subaperture, "subaperture-v5", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
+    "subaperture": Method(render_subaperture, "subaperture-v6", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
                           summary="the aperture cut into cells x cells parts, layered per part: shows what "
                                   "a blurred edge reveals behind it, about cells^2 x the cost"),
-    "exact": Method(render_exact, "exact-v3", ("samples", "cat_eye", "margin"), uses_boxes=False,
+    "adaptive": Method(render_adaptive, "adaptive-v1", ("level_step", "level_ratio", "margin"),
+                       summary="the layered render, with sub-aperture parts (two halves or 2 x 2 cells) only in the "
+                               "tiles where it errs: a blurred cutout's edge over a blurred plane that varies"),
+    "exact": Method(render_exact, "exact-v4", ("samples", "cat_eye", "margin"), uses_boxes=False,
                     summary="every aperture point warped and composited, averaged (slow, a reference)"),
 }
 
