@@ -74,11 +74,12 @@ def bench_recipe(base_text: str, size: int, samples: int, shard_size: int = 1):
     return _at_size(t, "bench", size, samples, shard_size, 1024, 64.0)
 
 
-def real_recipe(size: int, samples: int, shard_size: int = 1):
+def real_recipe(size: int, samples: int, shard_size: int = 1, text: str | None = None):
     """recipes/shared-assets.toml (the real photos and mattes in ../shared/assets; max CoC given
     at 512 px) at `size` px, `samples` train only. Its Kodak backgrounds are 768x512, so they may
     be magnified up to 2x."""
-    text = (ROOT / "recipes" / "shared-assets.toml").read_text(encoding="utf-8")
+    if text is None:  # (or that recipe's text from another tree: its paths resolve here)
+        text = (ROOT / "recipes" / "shared-assets.toml").read_text(encoding="utf-8")
     return _at_size(text, "bench-real", size, samples, shard_size, 512, 2.0)
 
 

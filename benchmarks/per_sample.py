@@ -4,7 +4,7 @@
     git worktree add /tmp/base 583f735                                      # the code before a change
     .venv/bin/python benchmarks/per_sample.py --tree /tmp/base --tree .    # both, interleaved, one run
 
-Each case renders the same samples of a recipe at --size px (max CoC scaled from the recipe's
+Each case renders the same samples of a recipe (each tree's own copy of it) at --size px (max CoC scaled from the recipe's
 own size, so 32 px at 1024 px for recipes/deeplens-18k.toml): "built-in" is that recipe with
 the built-in assets, "real" is recipes/shared-assets.toml on ../shared/assets (2 targets per
 sample, the photos' estimated foregrounds cached on disk as in a second run). Every
@@ -42,13 +42,14 @@ SHARED = ROOT.parent / "shared" / "assets"
 
 
 def _recipe(case: str, size: int, samples: int):
-    """The case's recipe in the tree on sys.path (benchmarks/generate.py's sizing rules)."""
+    """The case's recipe of the tree under test (the working folder: its own defaults, such as
+    its render method), sized by benchmarks/generate.py's rules; its paths resolve here."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import generate as bench  # this tree's helpers; the recipe parser is the tree under test
 
-    if case == "built-in":
-        return bench.bench_recipe((ROOT / "recipes" / "deeplens-18k.toml").read_text(encoding="utf-8"), size, samples)
-    return bench.real_recipe(size, samples)
+    name = "deeplens-18k.toml" if case == "built-in" else "shared-assets.toml"
+    text = (Path.cwd() / "recipes" / name).read_text(encoding="utf-8")
+    return bench.bench_recipe(text, size, samples) if case == "built-in" else bench.real_recipe(size, samples, text=text)
 
 
 def _asset_bytes(library, record: dict) -> list[bytes]:

@@ -238,6 +238,109 @@ def method_table(cocs=(10.0, 20.0), focuses=(0.0, 0.5, 1.0), cells=(2, 3, 4), n:
                 print(f"| {name} | {coc:g} | {focus:g} | " + " | ".join(row) + f" | {te / tl:.0f}x |", flush=True)
 
 
+def real_scenes(size: int = 1024, count: int = 3, coc: float = 32.0):
+    """Train scenes 0..count-1 of recipes/shared-assets.toml (the real photos and mattes of
+    ../shared/assets) at `size` px, every target at max CoC `coc`: {name: (planes prepared for
+    the blur, on their canvas; margin px; focuses; the recipe's Look)}. The focuses: on the
+    background (its mean disparity), the middle plane, halfway to the front plane, and the
+    front plane."""
+    import re
+    from pathlib import Path
+
+    from generate import ROOT, _at_size
+    from dofsynth.generate.worker import library_for, sample_scene
+    from dofsynth.sample import SampleRender
+
+    text = (ROOT / "recipes" / "shared-assets.toml").read_text(encoding="utf-8")
+    at512 = coc * 512 / size
+    text = re.sub(r"(?m)^max_coc = .*$", f"max_coc = [{at512}, {at512}]", text)
+    recipe = _at_size(text, "methods-real", size, count, 1, 512, 2.0)
+    library = library_for(recipe)
+    out = {}
+    for i in range(count):
+        scene = sample_scene(recipe, library, "train", i)
+        s = SampleRender(scene, library)
+        planes = s._prepared()
+        f0, f1 = planes[2].constant_disparity(), planes[1].constant_disparity()
+        back = float(np.mean(np.asarray(planes[0].disparity, np.float32)))
+        kind = "flat" if planes[0].constant_disparity() is not None else "ramp"
+        name = f"{scene.key} ({kind} background; " + ", ".join(Path(a.path).stem for a in scene.assets.values()) + ")"
+        out[name] = (planes, s._layers.margin, (round(back, 3), round(f1, 3), round((f0 + f1) / 2, 3), round(f0, 3)),
+                     scene.options.look)
+    return out
+
+
+def real_method_table(size: int, count: int, coc: float, methods, repeat: int = 5, reference_dir=None) -> None:
+    """PSNR (dB, over the frame) of `methods` (names of METHODS, or "subaperture:N" for N x N
+    cells) against the exact mode on `real_scenes`: of the render (linear light, highlights
+    boosted) and of the target made from it (the boost's inverse, clipped to [0, 1]: what a
+    sample holds). Their CPU time as a multiple of the layered method's: medians of `repeat`
+    renders, interleaved, each with its own focus jitter (1e-4 steps) so no kernel comes from
+    the cache (as in generation); the spread (min-max) beside it. Exact renders are kept in
+    `reference_dir` when given (they take minutes each)."""
+    from pathlib import Path
+
+    from dofsynth.render import METHODS
+    from dofsynth.render.look import restore
+
+    def psnr(a, b):
+        return 10 * np.log10(1.0 / max(float(np.mean((a - b) ** 2)), 1e-20))
+
+    def target(img, look):
+        return np.clip(restore(img.copy(), look), 0.0, 1.0)
+
+    def render(planes, m, focus, name):
+        kw = {}
+        if name.startswith("subaperture:"):
+            name, kw = "subaperture", {"cells": int(name.split(":")[1])}
+        if "margin" in METHODS[name].options:
+            kw["margin"] = m
+        return render_planes(planes, focus, coc, Disk(), method=name, planar=True, **kw)
+
+    names = ["layered"] + [m for m in methods if m != "layered"]
+    print(f"{size} px scenes of recipes/shared-assets.toml, max CoC {coc:g} px; times: CPU s, median of {repeat} "
+          "(min-max), interleaved, kernels not cached")
+    print("| scene | focus | " + " | ".join(f"{n} dB (render / target)" for n in names) + " | layered s | "
+          + " | ".join(f"{n} / layered" for n in names[1:]) + " |\n|" + "---|" * (3 + 2 * len(names) - 1))
+    totals = {n: 0.0 for n in names}  # the medians added over the rows
+    for scene, (planes, m, focuses, look) in real_scenes(size, count, coc).items():
+        H, W = planes[0].shape
+        frame = (slice(None), slice(m, H - m), slice(m, W - m))
+        for focus in focuses:
+            ref = None
+            key = f"exact-{METHODS['exact'].renderer_id}-{scene.split()[0]}-{size}-{coc:g}-{focus:.4f}.npy"
+            path = Path(reference_dir) / key if reference_dir else None
+            if path is not None and path.exists():
+                ref = np.load(path)
+            if ref is None:
+                ref = render(planes, m, focus, "exact")[frame]
+                if path is not None:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    np.save(path, ref)
+            quality = []
+            for n in names:
+                img = render(planes, m, focus, n)[frame]
+                quality.append(f"{psnr(img, ref):.1f} / {psnr(target(img, look), target(ref, look)):.1f}")
+            times = {n: [] for n in names}
+            sign = 1 if focus < 0.5 else -1  # (a focus stays in [0, 1])
+            for i in range(repeat):
+                for k, n in enumerate(names):
+                    t = time.process_time()
+                    render(planes, m, focus + sign * 1e-4 * (i * len(names) + k + 1), n)
+                    times[n].append(time.process_time() - t)
+            lay = statistics.median(times["layered"])
+            for n in names:
+                totals[n] += statistics.median(times[n])
+            ratios = []
+            for n in names[1:]:
+                r = [a / b for a, b in zip(times[n], times["layered"])]
+                ratios.append(f"{statistics.median(r):.2f}x ({min(r):.2f}-{max(r):.2f})")
+            print(f"| {scene} | {focus:g} | " + " | ".join(quality)
+                  + f" | {lay:.2f} ({min(times['layered']):.2f}-{max(times['layered']):.2f}) | " + " | ".join(ratios) + " |",
+                  flush=True)
+    print("all rows: " + ", ".join(f"{n} {totals[n]:.2f} s ({totals[n] / totals['layered']:.2f}x)" for n in names))
+
+
 def cat_eye_cost(sizes=(256, 512, 1024), strengths=(0.5, 1.0), repeat: int = 3) -> None:
     """CPU seconds of the sub-aperture mode (3 x 3 cells) with cat-eye, against the same
     without it and the layered method, on `scene(n)` (max CoC 32 px at 1024, scaled with the
@@ -279,10 +382,22 @@ def main() -> None:
     ap.add_argument("--cocs", type=float, nargs="+", default=[10.0, 20.0], help="with --methods: max CoC values")
     ap.add_argument("--focuses", type=float, nargs="+", default=[0.0, 0.5, 1.0], help="with --methods: focus values")
     ap.add_argument("--cells", type=int, nargs="+", default=[2, 3, 4], help="with --methods: cells per side")
+    ap.add_argument("--real", type=int, default=0, metavar="N",
+                    help="with --methods: N scenes of recipes/shared-assets.toml at --size px, max CoC --max-coc, "
+                         "each at 4 focuses, instead of the small synthetic scenes")
+    ap.add_argument("--max-coc", type=float, default=MAX_COC, help="with --methods --real: max CoC (px at --size)")
+    ap.add_argument("--compare", nargs="+", default=["adaptive"],
+                    help="with --methods --real: methods beside layered (a METHODS name or subaperture:N)")
+    ap.add_argument("--reference-dir", default=None,
+                    help="with --methods --real: a folder to keep the exact renders in (minutes each) and reuse them from")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     if args.levels:
         level_errors()
+        return
+    if args.methods and args.real:
+        with scipy.fft.set_workers(1):
+            real_method_table(args.size, args.real, args.max_coc, args.compare, args.repeat, args.reference_dir)
         return
     if args.methods:
         with scipy.fft.set_workers(1):
