@@ -7,7 +7,8 @@ the cutout and the rest what lies behind, which one blur per plane cannot tell a
 error vanishes where either is in focus, where the two share a CoC and where what lies behind
 is flat (docs/rendering.md). `error_scores` bounds it on a grid of TILE x TILE px tiles;
 `need_map` marks the tiles whose bound reaches MIN_SCORE, each with the aperture parts its
-edges ask for (`parts_for`: two halves split across the edge's direction, or 2 x 2 cells);
+edges ask for (`parts_for`: two halves split across the edges' direction; 2 x 2 cells for a
+rectangle holding both directions);
 `rectangles` gathers the marked tiles into rectangles, each rendered by the sub-aperture
 composite (dofsynth.render.subaperture.render_cells) from the planes cut to it plus a margin
 holding every pixel its result reads, and written over the layered result there. Elsewhere
@@ -30,9 +31,9 @@ from dofsynth.render.subaperture import cells, compact_disparity, cut_planes, ha
 
 TILE = 32           # px: the grid on which the aperture parts are chosen
 RECT_COST = 4.0     # tiles: the cost of one more rendered rectangle, in tiles' area (`rectangles`)
-MIN_SCORE = 0.003  # tiles whose error bound (`error_scores`) is lower keep the layered result
+MIN_SCORE = 0.005  # tiles whose error bound (`error_scores`) is lower keep the layered result
 MIN_DIFFERENCE = 0.5  # px: a cutout and a plane behind it whose CoCs differ less count as alike
-ANISOTROPY = 2.0    # an edge direction dominates a tile when its alpha changes this much more across it
+READ = 4            # px: the tiles' statistics are read on every READ-th pixel of every READ-th row
 
 
 def _tiles_near(ys, xs, r: int, shape) -> np.ndarray:
@@ -81,17 +82,17 @@ def _tile_coc(c, kept, shape) -> np.ndarray:
 def _spread(plane, backmost: bool, kept, shape, reach: float) -> np.ndarray:
     """(ty, tx): the variance of what a plane shows over each tile grown by `reach` px: its
     premultiplied colour's largest channel (linear), plus its alpha for a cutout (an edge of
-    it is a change of what lies behind the planes in front). Read on every other pixel."""
+    it is a change of what lies behind the planes in front), read on every READ-th pixel."""
     y0, y1, x0, x1 = kept
-    a = np.asarray(plane.alpha, np.float32)[y0:y1:2, x0:x1:2]
-    rgb = np.asarray(plane.rgb, np.float32)[y0:y1:2, x0:x1:2]
+    a = np.asarray(plane.alpha, np.float32)[y0:y1:READ, x0:x1:READ]
+    rgb = np.asarray(plane.rgb, np.float32)[y0:y1:READ, x0:x1:READ]
     v = np.maximum(np.maximum(rgb[:, :, 0], rgb[:, :, 1]), rgb[:, :, 2])
     if not backmost or not np.all(a == 1.0):
         v *= a
     parts = [v] if backmost else [v, a]
     var = np.zeros(shape)
     for x in parts:
-        mean, square = (_grown(_per_tile(y, shape, TILE // 2), reach) for y in (x, x * x))
+        mean, square = (_grown(_per_tile(y, shape, TILE // READ), reach) for y in (x, x * x))
         var += np.maximum(square - mean * mean, 0.0)
     return var
 
@@ -140,7 +141,7 @@ def error_scores(planes, focus: float, max_coc: float, kept: tuple[int, int, int
         edge = (a > 0) & (cv2.erode(a, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE) < 1.0)
         ey, ex = np.nonzero(edge)
         band = _tiles_near(ey + gy0 - y0, ex + gx0 - x0, int(math.ceil(reach[i])) + 2, shape)
-        mean = _grown(_per_tile(alpha[y0:y1:2, x0:x1:2], shape, TILE // 2), reach[i])
+        mean = _grown(_per_tile(alpha[y0:y1:READ, x0:x1:READ], shape, TILE // READ), reach[i])
         score = np.maximum(score, np.where(band, np.clip(mean * (1.0 - mean), 0.0, 0.25) * behind, 0.0))
     return score
 
@@ -149,9 +150,9 @@ LAYERED, ACROSS_X, ACROSS_Y, GRID = 0, 1, 2, 3  # what a tile gets (`need_map`)
 
 
 def parts_for(code: int, aperture: Aperture):
-    """The aperture parts ((cell, share) pairs) a tile of `need_map` code gets: its left and
-    right halves (ACROSS_X: edges running up and down), top and bottom halves (ACROSS_Y) or a
-    2 x 2 grid (GRID: corners, hair, edges of every direction)."""
+    """The aperture parts ((cell, share) pairs) for a `need_map` code: the left and right halves
+    (ACROSS_X: for edges running up and down), the top and bottom halves (ACROSS_Y), or a 2 x 2
+    grid (GRID: for a rectangle holding tiles of both directions)."""
     if code == ACROSS_X:
         return halves(aperture, "x")
     if code == ACROSS_Y:
@@ -161,11 +162,11 @@ def parts_for(code: int, aperture: Aperture):
 
 def need_map(planes, focus: float, max_coc: float, kept: tuple[int, int, int, int]) -> np.ndarray:
     """(ty, tx) int: what each TILE x TILE tile of `kept` gets (as `error_scores`): LAYERED
-    where the score is below MIN_SCORE (the layered result is kept); else the aperture cut
-    across the cutouts' edges there: its left and right halves (ACROSS_X) where the blurred
-    cutouts' alpha changes mostly along x (ANISOTROPY times more than along y), top and
-    bottom (ACROSS_Y) where it changes mostly along y, a 2 x 2 grid (GRID) elsewhere. A half
-    sees one side of an edge across it; along an edge, the first moments within it suffice."""
+    where the score is below MIN_SCORE (the layered result is kept); else the aperture split
+    in two across the blurred cutouts' edges there: its left and right halves (ACROSS_X) where
+    their alpha changes more along x than along y, else its top and bottom halves (ACROSS_Y).
+    Each half sees one side of an edge across it; along the edge, within a half, the first
+    moments of the second-order composite suffice."""
     score = error_scores(planes, focus, max_coc, kept)
     marked = score >= MIN_SCORE
     need = np.zeros(score.shape, np.int32)
@@ -177,14 +178,12 @@ def need_map(planes, focus: float, max_coc: float, kept: tuple[int, int, int, in
         reach = float(np.max(np.abs(coc_radius(compact_disparity(p), focus, max_coc))))
         if reach < 0.5:
             continue
-        a = np.asarray(p.alpha, np.float32)[y0:y1:2, x0:x1:2]
+        a = np.asarray(p.alpha, np.float32)[y0:y1:READ, x0:x1:READ]
         dx, dy = np.zeros_like(a), np.zeros_like(a)
         dx[:, 1:], dy[1:] = np.diff(a, axis=1) ** 2, np.diff(a, axis=0) ** 2
-        gx += _grown(_per_tile(dx, score.shape, TILE // 2), reach)
-        gy += _grown(_per_tile(dy, score.shape, TILE // 2), reach)
-    need[marked] = GRID
-    need[marked & (gx > ANISOTROPY * gy)] = ACROSS_X
-    need[marked & (gy > ANISOTROPY * gx)] = ACROSS_Y
+        gx += _grown(_per_tile(dx, score.shape, TILE // READ), reach)
+        gy += _grown(_per_tile(dy, score.shape, TILE // READ), reach)
+    need[marked] = np.where(gx[marked] >= gy[marked], ACROSS_X, ACROSS_Y)
     return need
 
 
@@ -241,7 +240,7 @@ def render_adaptive(planes, focus: float, max_coc: float, aperture: Aperture, op
     sub = replace(options, margin=0, level_ratio=max(options.level_ratio, 1 / 8))
     for t0, t1, s0, s1 in rectangles(need > 0, pad / TILE):
         codes = set(np.unique(need[t0:t1, s0:s1]).tolist()) - {LAYERED}
-        code = codes.pop() if len(codes) == 1 else GRID  # one direction, or a grid for all
+        code = codes.pop() if len(codes) == 1 else GRID  # one direction, or 2 x 2 cells for both
         y0, y1 = m + t0 * TILE, min(m + t1 * TILE, H - m)
         x0, x1 = m + s0 * TILE, min(m + s1 * TILE, W - m)
         cy0, cy1, cx0, cx1 = max(y0 - pad, 0), min(y1 + pad, H), max(x0 - pad, 0), min(x1 + pad, W)
