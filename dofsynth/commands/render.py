@@ -222,8 +222,11 @@ def _look(args):
 def run(args) -> int:
     import scipy.fft
 
+    from dofsynth.generate.worker import keep_large_blocks
     from dofsynth.optics.aperture import parse_aperture
     from dofsynth.render.look import render_photo
+
+    keep_large_blocks()  # this process renders one photo: keep its large blocks for reuse (0.4-1.7 s of page faults at 2048 px)
 
     out = output_file(args.out, args.image, ".dof.png", (".png", ".exr"))
     aperture = parse_aperture(args.aperture)

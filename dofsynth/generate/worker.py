@@ -150,11 +150,19 @@ MALLOC_ENV = "DOFSYNTH_WORKER_MALLOC"  # "default": leave glibc's settings; "MMA
 def setup_process() -> None:
     """Set up this process for rendering shards and nothing else (a pool worker, a Ray task, or
     `generate --workers 1` itself): one OpenCV thread (one core per worker, no
-    oversubscription) and, on Linux with glibc, the malloc settings above unless
-    DOFSYNTH_WORKER_MALLOC=default. The bytes made do not depend on any of it."""
+    oversubscription) and the malloc settings above (`keep_large_blocks`). The bytes made do
+    not depend on any of it."""
     import cv2
 
     cv2.setNumThreads(1)
+    keep_large_blocks()
+
+
+def keep_large_blocks() -> None:
+    """On Linux with glibc, keep blocks up to WORKER_MMAP_THRESHOLD on the heap and up to
+    WORKER_TRIM_THRESHOLD of free heap (above), unless DOFSYNTH_WORKER_MALLOC says otherwise
+    ("default": glibc's own; "MMAP_MIB,TRIM_MIB"): for a process whose one job is rendering
+    (generation workers, `dofsynth render`). Results do not depend on it."""
     setting = os.environ.get(MALLOC_ENV, "")
     if setting == "default" or not sys.platform.startswith("linux"):
         return

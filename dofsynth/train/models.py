@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import math
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -214,6 +216,27 @@ class GuidedUpsampler(nn.Module):
 HIGH_REACH = 3  # rows of the high-res image one output row of the upsampler depends on (three 3x3 convs)
 
 
+def _spread_reach(reach: torch.Tensor, steps: int) -> torch.Tensor:
+    """`steps` times reach = max(reach, its 3 x 3 maximum - 1) ((B, 1, h, w) float32): on the
+    CPU by cv2.dilate in place (20-30x faster than max_pool2d there), else by max_pool2d; the
+    same values (a maximum and a subtraction of 1, exact in float32)."""
+    if steps <= 0:
+        return reach
+    if reach.device.type != "cpu":
+        for _ in range(steps):
+            reach = torch.maximum(reach, F.max_pool2d(reach, 3, stride=1, padding=1) - 1.0)
+        return reach
+    out = reach.detach().to(torch.float32).contiguous().clone()
+    box = np.ones((3, 3), np.uint8)
+    for plane in out.numpy().reshape(-1, *out.shape[-2:]):
+        grown = np.empty_like(plane)
+        for _ in range(steps):
+            cv2.dilate(plane, box, dst=grown)  # outside the frame counts as nothing (its default border)
+            grown -= 1.0
+            np.maximum(plane, grown, out=plane)
+    return out
+
+
 @torch.no_grad()
 def untouched(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
     """(B, 1, H, W) bool: the pixels no blur reaches. A pixel's CoC is |signed| * coc_px px; one
@@ -228,8 +251,7 @@ def untouched(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
     if f > 1:  # in cells: the reach of a cell's farthest-reaching pixel, plus the cell's own extent
         cell = F.max_pool2d(reach, f, stride=f, ceil_mode=True)
         reach = torch.where(cell > 0, cell / f + 1.0, 0.0)
-    for _ in range(math.ceil(float(reach.max())) if reach.numel() else 0):
-        reach = torch.maximum(reach, F.max_pool2d(reach, 3, stride=1, padding=1) - 1.0)
+    reach = _spread_reach(reach, math.ceil(float(reach.max())) if reach.numel() else 0)
     free = reach <= 0
     if f > 1:
         h, w = signed.shape[-2:]
