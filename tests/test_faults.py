@@ -441,6 +441,29 @@ def test_a_parent_killed_at_any_start_up_phase_leaves_no_process(recipe_path, tm
         assert not list(temp.glob("dofsynth-pool-*")), "the library's temp folder outlived the run"
 
 
+def test_a_library_folder_left_by_a_killed_run_is_removed_by_the_next(tmp_path, monkeypatch):
+    """A parent killed with SIGKILL before its workers had read the library cannot remove its
+    temp folder; the next run removes every such folder whose process is gone, and leaves a
+    live run's (and any folder not named after a pid) alone."""
+    import tempfile
+
+    from dofsynth.generate import pool
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    dead = int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                              text=True, check=True).stdout)
+    stale = tmp_path / f"dofsynth-pool-{dead}-k1ll"
+    stale.mkdir()
+    (stale / "library.pkl").write_bytes(b"\0" * 1024)
+    live = tmp_path / f"dofsynth-pool-{os.getppid()}-l1ve"
+    live.mkdir()
+    unnamed = tmp_path / "dofsynth-pool-x1y2z3"
+    unnamed.mkdir()
+    new = Path(pool.pool_folder())
+    assert not stale.exists() and live.exists() and unnamed.exists()
+    assert new.parent == tmp_path and new.name.startswith(f"dofsynth-pool-{os.getpid()}-")
+
+
 @pytest.mark.parametrize("delay", [0.1, 0.5, 1.0, 2.0])
 @pytest.mark.parametrize("sig,rc,word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
 def test_an_early_signal_ends_the_run_with_one_line(recipe_path, tmp_path, delay, sig, rc, word):

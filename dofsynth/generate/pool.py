@@ -103,6 +103,30 @@ def _how_it_ended(p) -> str:
     return f"exit status {code}"
 
 
+POOL_PREFIX = "dofsynth-pool-"  # temp folders holding a run's pickled library: dofsynth-pool-PID-*
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def pool_folder() -> str:
+    """A new temp folder for this run's library, named after this process's pid. Folders of
+    runs whose process is gone are removed first: a parent killed with SIGKILL before its
+    workers had read the library cannot remove its own (25 MB with the built-in assets)."""
+    for old in Path(tempfile.gettempdir()).glob(POOL_PREFIX + "*-*"):
+        pid = old.name[len(POOL_PREFIX):].split("-", 1)[0]
+        if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+            shutil.rmtree(old, ignore_errors=True)
+    return tempfile.mkdtemp(prefix=f"{POOL_PREFIX}{os.getpid()}-")
+
+
 def run_pool(workers: int, recipe, out, tasks: list[ShardTask], limits: dict, on_samples=None,
              worker_lock: str | os.PathLike | None = None):
     """Render `tasks` with `workers` spawn processes; yield (task, info, seconds, peak MiB) per
@@ -110,7 +134,7 @@ def run_pool(workers: int, recipe, out, tasks: list[ShardTask], limits: dict, on
     that died or crashed; on any exit every worker is stopped and joined first."""
     ctx = mp.get_context("spawn")
     n = min(workers, len(tasks))
-    tmp = tempfile.mkdtemp(prefix="dofsynth-pool-")
+    tmp = pool_folder()
     drop = partial(shutil.rmtree, tmp, ignore_errors=True)
     try:
         lib_path = Path(tmp) / "library.pkl"
