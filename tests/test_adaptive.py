@@ -95,6 +95,25 @@ def test_a_blurred_edge_over_a_flat_or_sharp_background_scores_nothing():
     assert error_scores([planes[0], planes[2]], 0.9, 12.0, kept).max() == 0.0  # the cutout in focus
 
 
+def test_a_cutouts_colour_outside_its_box_is_never_read():
+    """A cutout's `box` promises alpha 0 outside it; its colour there is not read: NaN there
+    (in the disc, which lies behind the bar) gives the same render, byte for byte."""
+    from dataclasses import replace
+
+    from dofsynth.render.planes import alpha_box
+
+    planes = _scene()
+    disc = planes[1]
+    y0, y1, x0, x1 = box = alpha_box(disc.alpha)
+    nan = np.full((N, N, 3), np.nan, np.float32)
+    nan[y0:y1, x0:x1] = np.asarray(disc.rgb)[y0:y1, x0:x1]
+    boxed = [planes[0], replace(disc, box=box), planes[2]]
+    want = render_planes(boxed, 1.0, 12.0, Disk(), method="adaptive")
+    got = render_planes([planes[0], replace(disc, rgb=nan, box=box), planes[2]], 1.0, 12.0, Disk(), method="adaptive")
+    assert np.isfinite(got).all() and np.array_equal(got, want)
+    assert need_map(boxed, 1.0, 12.0, (0, N, 0, N)).any()
+
+
 def test_rectangles_cover_every_marked_tile_and_merge_when_it_pays():
     marked = np.zeros((8, 10), bool)
     marked[1, 1:3] = marked[2, 1:4] = True   # two runs one above the other: one rectangle

@@ -79,19 +79,32 @@ def _tile_coc(c, kept, shape) -> np.ndarray:
     return cv2.dilate(t.astype(np.float32), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
 
 
-def _spread(plane, backmost: bool, kept, shape, reach: float) -> np.ndarray:
-    """(ty, tx): the variance of what a plane shows over each tile grown by `reach` px: its
-    premultiplied colour's largest channel (linear), plus its alpha for a cutout (an edge of
-    it is a change of what lies behind the planes in front), read on every READ-th pixel."""
+def _lattice(a: np.ndarray, kept, box=None) -> np.ndarray:
+    """a[kept] read on every READ-th pixel of every READ-th row; only inside `box` (y0, y1, x0,
+    x1 of the frame) when given, 0 elsewhere (a cutout's colour is not read outside its box)."""
     y0, y1, x0, x1 = kept
-    a = np.asarray(plane.alpha, np.float32)[y0:y1:READ, x0:x1:READ]
-    rgb = np.asarray(plane.rgb, np.float32)[y0:y1:READ, x0:x1:READ]
+    if box is None:
+        return np.asarray(a[y0:y1:READ, x0:x1:READ], np.float32)
+    out = np.zeros((-(-(y1 - y0) // READ), -(-(x1 - x0) // READ)) + a.shape[2:], np.float32)
+    i0, i1 = -(-(max(box[0], y0) - y0) // READ), -(-(min(box[1], y1) - y0) // READ)
+    j0, j1 = -(-(max(box[2], x0) - x0) // READ), -(-(min(box[3], x1) - x0) // READ)
+    if i1 > i0 and j1 > j0:
+        out[i0:i1, j0:j1] = a[y0 + i0 * READ : y0 + i1 * READ : READ, x0 + j0 * READ : x0 + j1 * READ : READ]
+    return out
+
+
+def _spread(plane, box, kept, shape, reach: float) -> np.ndarray:
+    """(ty, tx): the variance of what a plane shows over each tile grown by `reach` px: its
+    premultiplied colour's largest channel (linear), plus its alpha for a cutout (`box`: its
+    alpha box; an edge of it is a change of what lies behind the planes in front), read on
+    every READ-th pixel (`_lattice`). box None: the backmost plane."""
+    a = _lattice(np.asarray(plane.alpha, np.float32), kept, box)
+    rgb = _lattice(np.asarray(plane.rgb, np.float32), kept, box)
     v = np.maximum(np.maximum(rgb[:, :, 0], rgb[:, :, 1]), rgb[:, :, 2])
-    if not backmost or not np.all(a == 1.0):
+    if box is not None or not np.all(a == 1.0):
         v *= a
-    parts = [v] if backmost else [v, a]
     var = np.zeros(shape)
-    for x in parts:
+    for x in [v] if box is None else [v, a]:
         mean, square = (_grown(_per_tile(y, shape, TILE // READ), reach) for y in (x, x * x))
         var += np.maximum(square - mean * mean, 0.0)
     return var
@@ -114,21 +127,20 @@ def error_scores(planes, focus: float, max_coc: float, kept: tuple[int, int, int
     score = np.zeros(shape)
     cocs = [coc_radius(compact_disparity(p), focus, max_coc) for p in planes]
     reach = [float(np.max(np.abs(c))) for c in cocs]
+    boxes = [None] + [plane_box(p, np.asarray(p.alpha, np.float32)) for p in planes[1:]]  # None: all / nothing
     spread: dict[int, np.ndarray] = {}
     for i in range(1, len(planes)):
-        if reach[i] < 0.5:
+        box = boxes[i]
+        if reach[i] < 0.5 or box is None:
             continue
         alpha = np.asarray(planes[i].alpha, np.float32)
-        box = plane_box(planes[i], alpha)
-        if box is None:
-            continue
         behind = np.zeros(shape)  # the largest variance of a blurred plane behind it
         for j in range(i):
             diff = max(float(np.max(cocs[i])) - float(np.min(cocs[j])), float(np.max(cocs[j])) - float(np.min(cocs[i])))
-            if reach[j] < 0.5 or diff < MIN_DIFFERENCE:
+            if reach[j] < 0.5 or diff < MIN_DIFFERENCE or (j > 0 and boxes[j] is None):
                 continue
             if j not in spread:
-                spread[j] = _spread(planes[j], j == 0, kept, shape, reach[j])
+                spread[j] = _spread(planes[j], boxes[j], kept, shape, reach[j])
             behind = np.maximum(behind, np.where(_tile_coc(cocs[j], kept, shape) >= 0.5, spread[j], 0.0))
         if not behind.any():
             continue
