@@ -344,7 +344,10 @@ def test_two_processes_under_torchrun_train_the_depth_network(smoke_set, tmp_pat
            "-m", "dofsynth", "--", "train", "train-depth-tiny", "--data", str(smoke_set), "--run", str(run),
            "--device", "cpu", "--steps", "2", "-q"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    # on failure, the ranks' own lines first (a rank's abort message comes before the launcher's
+    # long summary, which alone would fill the tail)
+    own = [line for line in proc.stderr.splitlines() if not line.startswith(("E1", "W1", "I1", " ", "Traceback"))]
+    assert proc.returncode == 0, "\n".join(own[-40:]) + "\n---\n" + proc.stderr[-1500:]
     assert json.loads((run / "env.json").read_text())["world_size"] == 2
     with open(run / "log.csv") as fh:
         rows = list(csv.DictReader(fh))
