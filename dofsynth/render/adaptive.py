@@ -27,7 +27,7 @@ from dofsynth.optics.aperture import Aperture
 from dofsynth.optics.coc import coc_radius
 from dofsynth.optics.kernel import support_radius
 from dofsynth.render.layered import plane_box, render_layered
-from dofsynth.render.subaperture import cells, compact_disparity, cut_planes, halves, render_cells
+from dofsynth.render.subaperture import cells, coc_reach, compact_disparity, cut_planes, halves, render_cells
 
 TILE = 32           # px: the grid on which the aperture parts are chosen
 RECT_COST = 4.0     # tiles: the cost of one more rendered rectangle, in tiles' area (`rectangles`)
@@ -67,15 +67,11 @@ def _tile_coc(c, kept, shape) -> np.ndarray:
     if np.ndim(c) == 0:
         return np.full(shape, abs(float(c)))
     y0, y1, x0, x1 = kept
-    c = np.abs(c)[slice(y0, y1) if c.shape[0] > 1 else slice(None), slice(x0, x1) if c.shape[1] > 1 else slice(None)]
-    ty, tx = shape
-    rows = np.pad(c.max(axis=1), (0, ty * TILE - c.shape[0]), mode="edge") if c.shape[0] > 1 else np.repeat(c.max(axis=1), ty * TILE)
-    cols = np.pad(c.max(axis=0), (0, tx * TILE - c.shape[1]), mode="edge") if c.shape[1] > 1 else np.repeat(c.max(axis=0), tx * TILE)
-    if c.shape[0] > 1 and c.shape[1] > 1:  # a full map
-        full = np.pad(c, ((0, ty * TILE - c.shape[0]), (0, tx * TILE - c.shape[1])), mode="edge")
-        t = full.reshape(ty, TILE, tx, TILE).max(axis=(1, 3))
-    else:
-        t = np.minimum.outer(rows.reshape(ty, TILE).max(axis=1), cols.reshape(tx, TILE).max(axis=1))
+    ry, rx = (TILE if c.shape[0] > 1 else 1), (TILE if c.shape[1] > 1 else 1)  # a broadcast axis stays one
+    c = np.abs(c)[slice(y0, y1) if ry > 1 else slice(None), slice(x0, x1) if rx > 1 else slice(None)]
+    c = np.pad(c, ((0, shape[0] * ry - c.shape[0] if ry > 1 else 0), (0, shape[1] * rx - c.shape[1] if rx > 1 else 0)),
+               mode="edge")
+    t = np.broadcast_to(c.reshape(c.shape[0] // ry, ry, c.shape[1] // rx, rx).max(axis=(1, 3)), shape)
     return cv2.dilate(t.astype(np.float32), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
 
 
@@ -128,7 +124,7 @@ def error_scores(planes, focus: float, max_coc: float, kept: tuple[int, int, int
     cocs = [coc_radius(compact_disparity(p), focus, max_coc) for p in planes]
     reach = [float(np.max(np.abs(c))) for c in cocs]
     boxes = [None] + [plane_box(p, np.asarray(p.alpha, np.float32)) for p in planes[1:]]  # None: all / nothing
-    spread: dict[int, np.ndarray] = {}
+    varies: dict[int, np.ndarray] = {}  # per plane behind: its variance where it is blurred, 0 elsewhere
     for i in range(1, len(planes)):
         box = boxes[i]
         if reach[i] < 0.5 or box is None:
@@ -139,9 +135,10 @@ def error_scores(planes, focus: float, max_coc: float, kept: tuple[int, int, int
             diff = max(float(np.max(cocs[i])) - float(np.min(cocs[j])), float(np.max(cocs[j])) - float(np.min(cocs[i])))
             if reach[j] < 0.5 or diff < MIN_DIFFERENCE or (j > 0 and boxes[j] is None):
                 continue
-            if j not in spread:
-                spread[j] = _spread(planes[j], boxes[j], kept, shape, reach[j])
-            behind = np.maximum(behind, np.where(_tile_coc(cocs[j], kept, shape) >= 0.5, spread[j], 0.0))
+            if j not in varies:
+                blurred = _tile_coc(cocs[j], kept, shape) >= 0.5
+                varies[j] = np.where(blurred, _spread(planes[j], boxes[j], kept, shape, reach[j]), 0.0)
+            behind = np.maximum(behind, varies[j])
         if not behind.any():
             continue
         # the edge pixels, found inside the box grown by one (a box that ends inside the frame
@@ -153,7 +150,7 @@ def error_scores(planes, focus: float, max_coc: float, kept: tuple[int, int, int
         edge = (a > 0) & (cv2.erode(a, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE) < 1.0)
         ey, ex = np.nonzero(edge)
         band = _tiles_near(ey + gy0 - y0, ex + gx0 - x0, int(math.ceil(reach[i])) + 2, shape)
-        mean = _grown(_per_tile(alpha[y0:y1:READ, x0:x1:READ], shape, TILE // READ), reach[i])
+        mean = _grown(_per_tile(_lattice(alpha, kept), shape, TILE // READ), reach[i])
         score = np.maximum(score, np.where(band, np.clip(mean * (1.0 - mean), 0.0, 0.25) * behind, 0.0))
     return score
 
@@ -184,13 +181,12 @@ def need_map(planes, focus: float, max_coc: float, kept: tuple[int, int, int, in
     need = np.zeros(score.shape, np.int32)
     if not marked.any():
         return need
-    y0, y1, x0, x1 = kept
     gx, gy = np.zeros(score.shape), np.zeros(score.shape)
     for p in planes[1:]:
-        reach = float(np.max(np.abs(coc_radius(compact_disparity(p), focus, max_coc))))
+        reach = coc_reach(p, focus, max_coc)
         if reach < 0.5:
             continue
-        a = np.asarray(p.alpha, np.float32)[y0:y1:READ, x0:x1:READ]
+        a = _lattice(np.asarray(p.alpha, np.float32), kept)
         dx, dy = np.zeros_like(a), np.zeros_like(a)
         dx[:, 1:], dy[1:] = np.diff(a, axis=1) ** 2, np.diff(a, axis=0) ** 2
         gx += _grown(_per_tile(dx, score.shape, TILE // READ), reach)
@@ -247,8 +243,7 @@ def render_adaptive(planes, focus: float, max_coc: float, aperture: Aperture, op
     need = need_map(planes, focus, max_coc, kept)
     if not need.any():
         return out
-    reach = max(float(np.max(np.abs(coc_radius(compact_disparity(p), focus, max_coc)))) for p in planes)
-    pad = support_radius(reach) + 2  # what a pixel of a cell's render reads: the kernel, and one more for gradients
+    pad = support_radius(max(coc_reach(p, focus, max_coc) for p in planes)) + 2  # what a pixel of a cell's render reads: the kernel, and one more for gradients
     sub = replace(options, margin=0, level_ratio=max(options.level_ratio, 1 / 8))
     for t0, t1, s0, s1 in rectangles(need > 0, pad / TILE):
         codes = set(np.unique(need[t0:t1, s0:s1]).tolist()) - {LAYERED}

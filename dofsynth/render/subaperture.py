@@ -203,6 +203,11 @@ def compact_disparity(plane):
     return d if d is not None else compact(np.asarray(plane.disparity_map(), np.float32))
 
 
+def coc_reach(plane, focus: float, max_coc: float) -> float:
+    """The plane's largest |CoC| (px)."""
+    return float(np.max(np.abs(coc_radius(compact_disparity(plane), focus, max_coc))))
+
+
 def _composite(R: np.ndarray, c_back, layers) -> np.ndarray:
     """The cutouts composited "over" R (3, H, W), the backmost plane through one cell (in
     place), to second order in the aperture point p within the cell: the mean of a_p R_p over
@@ -262,10 +267,10 @@ def _cutout_cells(plane, box, focus: float, max_coc: float, parts, options, H: i
     them. Constant disparity and within BATCH_MAX: one batch."""
     d = plane.constant_disparity()
     if d is None:
-        out = []
+        cmap, out = coc_radius(plane.disparity_map(), focus, max_coc), []
         for cell, _ in parts:
             (y0, y1, x0, x1), st = _blur_varying_cutout(plane, focus, max_coc, cell, options, H, W)
-            out.append(((y0, y1, x0, x1), st, coc_radius(plane.disparity_map(), focus, max_coc)[y0:y1, x0:x1]))
+            out.append(((y0, y1, x0, x1), st, cmap[y0:y1, x0:x1]))
         return out
     c = coc_radius(d, focus, max_coc)
     s = support_radius(c)
@@ -364,7 +369,7 @@ def render_subaperture(planes, focus: float, max_coc: float, aperture: Aperture,
     if not options.cat_eye:
         return render_cells(planes, focus, max_coc, parts, options)
     H, W = planes[0].shape
-    reach = max(float(np.max(np.abs(coc_radius(compact_disparity(p), focus, max_coc)))) for p in planes)
+    reach = max(coc_reach(p, focus, max_coc) for p in planes)
     plan = eye_plan(parts, (H, W), options.cat_eye, options.margin, reach)
     hy, hx = plan.hats(np.arange(H), np.arange(W))
     s = 2 * support_radius(reach)  # what a part's sources reach, and the planes that reach it
