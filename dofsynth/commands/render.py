@@ -85,6 +85,8 @@ def register(subparsers) -> None:
                         "become bright bokeh discs, and map the result back (dofsynth.render.highlight; not with --model)")
     p.add_argument("--method", default=None, metavar="METHOD",
                    help="how the blur is rendered (dofsynth.render.METHODS): layered (fast, the default), "
+                        "adaptive (layered, with sub-aperture parts where a blurred edge of a layered scene lies "
+                        "over a blurred plane; a single photo has no such edge, so it renders as layered), "
                         "subaperture (--cells N: N x N aperture cells, up to about N^2 times the cost; it shows what "
                         "blurred edges of layered scenes reveal, so a single photo gains little) or exact "
                         "(aperture sampling; slow, for small images); `dofsynth docs rendering` lists them")
