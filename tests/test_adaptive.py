@@ -8,7 +8,7 @@ from dofsynth.optics import Disk, Polygon
 from dofsynth.render import RenderOptions, render_planes
 from dofsynth.render.adaptive import TILE, error_scores, need_map, parts_for, rectangles
 from dofsynth.render.planes import Plane
-from dofsynth.render.subaperture import render_cells
+from dofsynth.render.subaperture import cut_planes, render_cells
 
 N = 160
 
@@ -63,7 +63,9 @@ def test_adaptive_is_the_sub_aperture_render_in_its_tiles_and_layered_elsewhere(
     sub-aperture render's of the whole frame (of the aperture parts `parts_for` gives: a tile's
     own, or the 2 x 2 grid where a rectangle of tiles mixes kinds), to float32 rounding; every
     tile `need_map` marks is the latter. The planes cut to a rectangle and its margin give the
-    whole frame's pixels there: nothing the cut leaves out reaches them."""
+    whole frame's pixels there: nothing the cut leaves out reaches them. (The whole frame's
+    render is that of the planes going on past the frame, as the renderers extend them, so
+    that its edge pixels too take central differences in the composite.)"""
     planes = _scene()
     for focus in (0.35, 1.0):
         out = render_planes(planes, focus, 12.0, aperture, method="adaptive", planar=True)
@@ -71,7 +73,10 @@ def test_adaptive_is_the_sub_aperture_render_in_its_tiles_and_layered_elsewhere(
         need = need_map(planes, focus, 12.0, (0, N, 0, N))
         assert 0 < need.astype(bool).mean() < 1
         per_pixel = np.kron(need, np.ones((TILE, TILE), np.int32))[:N, :N]
-        renders = [render_cells(planes, focus, 12.0, parts_for(code, aperture), RenderOptions()) for code in (1, 2, 3)]
+        p = 15  # past every kernel's reach
+        past = cut_planes(planes, -p, N + p, -p, N + p)
+        renders = [render_cells(past, focus, 12.0, parts_for(code, aperture), RenderOptions(), inner=p - 1)[:, p:-p, p:-p]
+                   for code in (1, 2, 3)]
         err = np.min([np.abs(out - r).max(axis=0) for r in renders], axis=0)  # to the nearest sub-aperture render
         same = (out == layered).all(axis=0)
         assert np.all(same | (err < 2e-5)), (focus, err[~same].max())
@@ -150,3 +155,20 @@ def test_adaptive_renders_only_the_kept_frame_with_a_margin():
     kept = render_planes(planes, 1.0, 12.0, Disk(), method="adaptive", margin=m, planar=True)
     assert not kept[:, :m].any() and not kept[:, -m:].any()
     assert np.isfinite(kept).all() and kept[:, m:-m, m:-m].min() > 0.0
+
+
+@pytest.mark.parametrize("ramp", [False, True])
+def test_subaperture_with_a_margin_computes_the_frame_only_and_the_same_pixels(ramp):
+    """With `margin` past every kernel's reach, the sub-aperture method computes the frame (and
+    its cells' blurs only there), which equals the render of the same planes without a margin
+    on it to float32 rounding; the margin stays 0. A flat background, and one whose disparity
+    varies along y (farthest in the middle, where both renders anchor their CoC levels)."""
+    planes = _scene()
+    if ramp:
+        d = np.broadcast_to((0.05 + 0.25 * np.abs(np.linspace(-1.0, 1.0, N, dtype=np.float32)))[:, None], (N, N))
+        planes[0] = Plane(planes[0].rgb, planes[0].alpha, d)
+    m = 16
+    kept = render_planes(planes, 0.35, 12.0, Disk(), method="subaperture", cells=2, margin=m, planar=True)
+    full = render_planes(planes, 0.35, 12.0, Disk(), method="subaperture", cells=2, planar=True)
+    assert not kept[:, :m].any() and not kept[:, -m:].any() and not kept[:, :, :m].any() and not kept[:, :, -m:].any()
+    np.testing.assert_allclose(kept[:, m:-m, m:-m], full[:, m:-m, m:-m], atol=2e-6)

@@ -363,8 +363,8 @@ def test_the_convolver_equals_a_float64_direct_convolution_tiled_or_not(tiling, 
 
 
 def test_convolve_stack_equals_float64_direct_convolutions_full_and_valid():
-    """fft.convolve_stack: each (kernel, channel) pair's full convolution, or only its valid
-    part (every tap inside the input), by one batched FFT."""
+    """fft.convolve_stack: each (kernel, channel) pair's full convolution, only its valid
+    part (every tap inside the input), or a window of it, by one batched FFT."""
     from scipy.signal import convolve2d
 
     from dofsynth.render.fft import convolve_stack
@@ -379,6 +379,13 @@ def test_convolve_stack_equals_float64_direct_convolutions_full_and_valid():
                 for k, c in pairs]
         assert got.dtype == np.float32 and got.shape == (4,) + want[0].shape
         np.testing.assert_allclose(got, np.stack(want), atol=2e-5)
+    full = np.stack([convolve2d(x[c].astype(np.float64), ks[k].astype(np.float64)) for k, c in pairs])
+    # windows of the full result: its start, its middle, its end, a single row (the FFT is smaller, nothing wraps in)
+    for win in ((0, 10, 0, 65), (8, 37, 13, 52), (20, 45, 40, 65), (44, 45, 0, 3)):
+        got = convolve_stack(x, ks, pairs, window=win)
+        y0, y1, x0, x1 = win
+        assert got.shape == (4, y1 - y0, x1 - x0)
+        np.testing.assert_allclose(got, full[:, y0:y1, x0:x1], atol=2e-5)
 
 
 def test_convolve_equals_a_zero_padded_direct_convolution():

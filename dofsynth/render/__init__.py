@@ -54,7 +54,8 @@ class RenderOptions:
     cells: int = 1
     cat_eye: float = 0.0
     margin: int = 0  # px the planes go on past the frame on each side: cat-eye is measured on the
-    #                  frame, and the layered method computes only it (the rest of its result is 0)
+    #                  frame, and the layered, adaptive and (without cat-eye, the margin past every
+    #                  kernel's reach) sub-aperture methods compute only it (the rest of the result is 0)
 
     def __post_init__(self):
         if not (math.isfinite(self.level_step) and self.level_step > 0):
@@ -95,10 +96,10 @@ class Method:
 METHODS: dict[str, Method] = {
     "layered": Method(render_layered, "layered-v5", ("level_step", "level_ratio", "margin"),
                       summary="each plane blurred on its own and composited back to front (fast)"),
-    "subaperture": Method(render_subaperture, "subaperture-v6", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
+    "subaperture": Method(render_subaperture, "subaperture-v7", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
                           summary="the aperture cut into cells x cells parts, layered per part: shows what "
                                   "a blurred edge reveals behind it, about cells^2 x the cost"),
-    "adaptive": Method(render_adaptive, "adaptive-v1", ("level_step", "level_ratio", "margin"),
+    "adaptive": Method(render_adaptive, "adaptive-v2", ("level_step", "level_ratio", "margin"),
                        summary="the layered render, with sub-aperture parts (two halves or 2 x 2 cells) only in the "
                                "tiles where it errs: a blurred cutout's edge over a blurred plane that varies"),
     "exact": Method(render_exact, "exact-v4", ("samples", "cat_eye", "margin"), uses_boxes=False,

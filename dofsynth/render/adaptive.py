@@ -243,14 +243,16 @@ def render_adaptive(planes, focus: float, max_coc: float, aperture: Aperture, op
     need = need_map(planes, focus, max_coc, kept)
     if not need.any():
         return out
-    pad = support_radius(max(coc_reach(p, focus, max_coc) for p in planes)) + 2  # what a pixel of a cell's render reads: the kernel, and one more for gradients
+    # a rectangle's pixels and one more each side (the composite's gradients) are computed, from
+    # the planes cut to them plus the largest kernel's reach (edge pixels past the frame)
+    pad = support_radius(max(coc_reach(p, focus, max_coc) for p in planes)) + 1
     sub = replace(options, margin=0, level_ratio=max(options.level_ratio, 1 / 8))
     for t0, t1, s0, s1 in rectangles(need > 0, pad / TILE):
         codes = set(np.unique(need[t0:t1, s0:s1]).tolist()) - {LAYERED}
         code = codes.pop() if len(codes) == 1 else GRID  # one direction, or 2 x 2 cells for both
         y0, y1 = m + t0 * TILE, min(m + t1 * TILE, H - m)
         x0, x1 = m + s0 * TILE, min(m + s1 * TILE, W - m)
-        cy0, cy1, cx0, cx1 = max(y0 - pad, 0), min(y1 + pad, H), max(x0 - pad, 0), min(x1 + pad, W)
-        img = render_cells(cut_planes(planes, cy0, cy1, cx0, cx1), focus, max_coc, parts_for(code, aperture), sub)
-        out[:, y0:y1, x0:x1] = img[:, y0 - cy0 : y1 - cy0, x0 - cx0 : x1 - cx0]
+        cut = cut_planes(planes, y0 - pad, y1 + pad, x0 - pad, x1 + pad)
+        img = render_cells(cut, focus, max_coc, parts_for(code, aperture), sub, inner=pad - 1)
+        out[:, y0:y1, x0:x1] = img[:, pad : pad + y1 - y0, pad : pad + x1 - x0]
     return out

@@ -169,26 +169,32 @@ def stack_fits(h: int, w: int, kh: int, kw: int) -> bool:
     return (h + kh - 1) * (w + kw - 1) <= STACK_FFT_MAX
 
 
-def convolve_stack(x: np.ndarray, kernels: np.ndarray, pairs, valid: bool = False) -> np.ndarray:
+def convolve_stack(x: np.ndarray, kernels: np.ndarray, pairs, valid: bool = False, window=None) -> np.ndarray:
     """Linear convolutions of channels of x (C, h, w) with kernels (K, kh, kw), float32:
     pairs[i] = (kernel index, channel index). The full convolutions (len(pairs), h + kh - 1,
-    w + kw - 1), or with `valid` only the outputs that every kernel tap reaches inside x
-    ((len(pairs), h - kh + 1, w - kw + 1): a circular FFT of the input's size is then enough).
+    w + kw - 1); with `window` = (y0, y1, x0, x1) only those rows and columns of them (inside
+    the full convolution); with `valid` the outputs that every kernel tap reaches inside x
+    ((len(pairs), h - kh + 1, w - kw + 1), the window (kh - 1, h, kw - 1, w)). The circular
+    FFT is only as large as the window needs (its outputs must not wrap onto the window:
+    n >= max(input, full - y0, y1) per axis), so a window costs less than the full result.
     Three batched float32 FFT calls whatever the count (the channels' transforms, the
     kernels', the inverse of the products): for a few small channels, where the per-channel
     `Convolver` spends most of its time around the transforms. Equal to direct convolution to
     float32 rounding (tested)."""
     h, w = x.shape[1:]
     kh, kw = kernels.shape[1:]
-    m0, m1 = (h, w) if valid else (h + kh - 1, w + kw - 1)
-    n0, n1 = sfft.next_fast_len(m0, real=True), sfft.next_fast_len(m1, real=True)
+    if valid:
+        window = (kh - 1, h, kw - 1, w)
+    y0, y1, x0, x1 = (0, h + kh - 1, 0, w + kw - 1) if window is None else window
+    n0 = sfft.next_fast_len(max(h, h + kh - 1 - y0, y1), real=True)
+    n1 = sfft.next_fast_len(max(w, w + kw - 1 - x0, x1), real=True)
     spec = sfft.rfft2(x, s=(n0, n1))
     kspec = sfft.fft(sfft.rfft(kernels, n=n1, axis=-1), n=n0, axis=-2)  # = rfft2, without the zero rows' transforms
     ki, ci = (list(v) for v in zip(*pairs))
     prod = kspec[ki]
     prod *= spec[ci]
     out = sfft.irfft2(prod, s=(n0, n1), overwrite_x=True)
-    return out[:, kh - 1 : h, kw - 1 : w] if valid else out[:, :m0, :m1]
+    return out[:, y0:y1, x0:x1]
 
 
 def copy_tile(a: np.ndarray):
