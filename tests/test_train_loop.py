@@ -360,8 +360,30 @@ def test_eval_prints_and_writes_the_table(setup, capsys):
     table = json.loads((run / "eval.json").read_text())["table"]
     assert [r["method"] for r in table] == ["network", "classical", "all-in-focus"]
     assert all(r["n"] == 4 and 0 < r["psnr"] < 100 and -1 <= r["ssim"] <= 1 for r in table)  # 2 samples x 2 targets
-    assert (run / "eval.csv").read_text().startswith("method,psnr,ssim,psnr_edge,n")
+    assert (run / "eval.csv").read_text().startswith("method,psnr,ssim,psnr_edge,ssim_edge,psnr_out,ssim_out,"
+                                                     "psnr_same,ssim_same,n")
+    assert "same dB" in out and "edge SSIM" in out
     assert main(["eval", str(run.parent / "nope"), "--data", str(data)]) == 2
+
+
+def test_eval_metrics_split_the_frame_into_the_edge_band_the_rest_and_where_target_is_input():
+    """PSNR per region over its own pixels (an error of 0.01 in the band: 40 dB; 0.001 elsewhere:
+    60 dB), SSIM the mean of the map there; an empty region is None."""
+    from dofsynth.train.evaluate import _metrics
+
+    g = np.random.default_rng(0)
+    target = g.uniform(0.1, 0.9, (64, 64, 3))
+    band = np.zeros((64, 64), bool)
+    band[:, 20:30] = True
+    same = np.zeros((64, 64), bool)
+    same[:, 40:] = True
+    pred = target + np.where(band[:, :, None], 0.01, 0.001)
+    m = _metrics(pred, target, band, same)
+    assert m["psnr_edge"] == pytest.approx(40.0) and m["psnr_out"] == pytest.approx(60.0)
+    assert m["psnr_same"] == pytest.approx(60.0) and 40.0 < m["psnr"] < 60.0
+    assert m["ssim_edge"] < m["ssim_out"] <= 1.0 and m["ssim_same"] > m["ssim_edge"]
+    none = _metrics(pred, target, band, np.zeros((64, 64), bool))
+    assert none["psnr_same"] is None and none["ssim_same"] is None
 
 
 def _classical(result):

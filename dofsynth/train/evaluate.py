@@ -13,9 +13,10 @@ with the default ranges of [augment] (see `DEPTH_KINDS`), or a TOML file whose
 [augment] table is the setting (a shipped training config by name too, e.g. "train-learn");
 always drawn with the evaluation seed, so runs trained
 differently are scored on the same inputs. PSNR and SSIM (skimage.metrics, sRGB in [0, 1],
-data_range 1) are taken against the rendered target, and PSNR also in the band within the
-target's max CoC of a depth edge of the clean disparity ("psnr_edge"), where a single-image
-renderer fails. The table is printed and written to RUN/eval.csv and RUN/eval.json.
+data_range 1) are taken against the rendered target, over the frame and in three regions:
+the band within the target's max CoC of a depth edge of the clean disparity ("edge"), where a
+single-image renderer fails; the rest of the frame ("out"); and where no blur reaches by the
+clean depth ("same": the target is the input there, `models.untouched`). The table is printed and written to RUN/eval.csv and RUN/eval.json.
 
 A depth run ([train] task = "depth") is scored by `evaluate_depth` instead: the MAE of its
 normalized disparity against the split's (min-max normalized) disparity, raw and after the
@@ -41,6 +42,7 @@ from dofsynth.train.classical import classical_render
 from dofsynth.train.config import AugmentConfig, load
 from dofsynth.train.data import excluded, find_segments, full_res_signed, raw_samples, sample_rng, training_item
 from dofsynth.train.depth import depth_errors, predict_disparity
+from dofsynth.train.models import untouched
 
 METHODS = ("network", "classical", "all-in-focus")
 DEPTH_KINDS = {"morph": "morph_prob", "edge_blur": "edge_blur_prob", "noise": "noise_prob",
@@ -89,16 +91,35 @@ def edge_band(disparity: np.ndarray, radius: float) -> np.ndarray:
     return cv2.dilate(edge.astype(np.uint8), se) > 0
 
 
-def _metrics(pred_srgb: np.ndarray, target_srgb: np.ndarray, band: np.ndarray) -> dict:
+REGIONS = ("edge", "out", "same")  # the edge band, the rest of the frame, where no blur reaches (target = input)
+FIELDS = ["method", "psnr", "ssim"] + [f"{m}_{r}" for r in REGIONS for m in ("psnr", "ssim")] + ["n"]
+
+
+PSNR_CAP = 100.0  # dB: what identical pixels score (PSNR is infinite there)
+
+
+def _psnr(ref: np.ndarray, pred: np.ndarray) -> float:
+    if np.array_equal(ref, pred):
+        return PSNR_CAP
+    return min(float(peak_signal_noise_ratio(ref, pred, data_range=1.0)), PSNR_CAP)
+
+
+def _metrics(pred_srgb: np.ndarray, target_srgb: np.ndarray, band: np.ndarray, same: np.ndarray) -> dict:
+    """PSNR and SSIM over the frame, and in each region of REGIONS (`band`; outside it; `same`,
+    where no blur reaches by the clean depth, so the target is the input): PSNR over its pixels
+    (at most PSNR_CAP), SSIM the mean of the SSIM map
+    (7 px windows, the channels' mean) over them; None for an empty region."""
     pred = np.clip(pred_srgb, 0.0, 1.0).astype(np.float64)
     ref = target_srgb.astype(np.float64)
     side = min(ref.shape[:2])
     win = 7 if side >= 7 else max(1, side - (1 - side % 2))  # SSIM needs an odd window <= the side
-    out = {"psnr": float(peak_signal_noise_ratio(ref, pred, data_range=1.0)),
-           "ssim": float(structural_similarity(ref, pred, data_range=1.0, channel_axis=2, win_size=win)),
-           "psnr_edge": None}
-    if band.any():
-        out["psnr_edge"] = float(peak_signal_noise_ratio(ref[band], pred[band], data_range=1.0))
+    ssim, smap = structural_similarity(ref, pred, data_range=1.0, channel_axis=2, win_size=win, full=True)
+    smap = smap.mean(axis=2)
+    out = {"psnr": _psnr(ref, pred), "ssim": float(ssim)}
+    for name, mask in zip(REGIONS, (band, ~band, same)):
+        on = mask.any()
+        out[f"psnr_{name}"] = _psnr(ref[mask], pred[mask]) if on else None
+        out[f"ssim_{name}"] = float(smap[mask].mean()) if on else None
     return out
 
 
@@ -106,7 +127,8 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
                  classical: bool = True, depth: str = "run", seed: int = 12345, device: str | None = None,
                  write: bool = True) -> dict:
     """Score every target of the first `limit` samples of `split`, everyone given the disparity
-    `depth` names; returns {"table": [{"method", "psnr", "ssim", "psnr_edge", "n"}], "items":
+    `depth` names; returns {"table": [{"method", "psnr", "ssim", "psnr_edge", "ssim_edge",
+    "psnr_out", "ssim_out", "psnr_same", "ssim_same", "n"}] (FIELDS), "items":
     [...]} and writes RUN/eval.{csv,json} (unless write=False)."""
     run_dir = Path(run_dir)
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
@@ -127,6 +149,8 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
             target = to_srgb(_hwc(item["target"]))
             image = to_srgb(_hwc(item["image"]))
             band = edge_band(clean[: target.shape[0], : target.shape[1]], item["max_coc"])
+            signed = torch.from_numpy(clean[: target.shape[0], : target.shape[1]] - np.float32(item["focus"]))
+            same = untouched(signed[None, None], float(item["max_coc"]))[0, 0].numpy()  # no blur reaches, by the clean depth
             with torch.inference_mode():
                 one = {k: (v[None].to(device) if torch.is_tensor(v) else [v]) for k, v in item.items()
                        if k in ("image", "signed_lo", "image_lo", "disparity", "focus", "max_coc", "classical")}
@@ -137,20 +161,21 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
                 outputs["classical"] = classical_render(image, _hwc(item["disparity"])[:, :, 0], item["focus"],
                                                         item["max_coc"], record)
             for method, out in outputs.items():
-                items.append({"key": item["key"], "target": t, "method": method, **_metrics(out, target, band)})
+                items.append({"key": item["key"], "target": t, "method": method, **_metrics(out, target, band, same)})
     if not items:
         raise ValueError(f"{data_dir}/{split}: no samples to evaluate")
     table = []
     for method in METHODS:
         rows = [r for r in items if r["method"] == method]
-        if rows:
-            edge = [r["psnr_edge"] for r in rows if r["psnr_edge"] is not None]
-            table.append({"method": method, "psnr": float(np.mean([r["psnr"] for r in rows])),
-                          "ssim": float(np.mean([r["ssim"] for r in rows])),
-                          "psnr_edge": float(np.mean(edge)) if edge else None, "n": len(rows)})
+        if rows:  # means over the targets (a region's over those that have it)
+            means = {}
+            for f in FIELDS[1:-1]:
+                vals = [r[f] for r in rows if r[f] is not None]
+                means[f] = float(np.mean(vals)) if vals else None
+            table.append({"method": method, **means, "n": len(rows)})
     result = {"split": split, "seed": seed, "depth": depth, "table": table, "items": items}
     if write:
-        atomic_write_bytes(run_dir / "eval.csv", csv_text(["method", "psnr", "ssim", "psnr_edge", "n"], table).encode())
+        atomic_write_bytes(run_dir / "eval.csv", csv_text(FIELDS, table).encode())
         atomic_write_bytes(run_dir / "eval.json", canonical_json(result, indent=1))
     return result
 
@@ -193,9 +218,12 @@ def format_table(result: dict) -> str:
                  f"{'method':<14} {'MAE':>7} {'MAE spline':>11} {'n':>5}"]
         lines += [f"{r['method']:<14} {r['mae']:>7.4f} {r['mae_spline']:>11.4f} {r['n']:>5}" for r in result["table"]]
         return "\n".join(lines)
-    lines = [f"depth given: {result.get('depth', 'run')}",
-             f"{'method':<14} {'PSNR dB':>8} {'SSIM':>7} {'edge dB':>8} {'n':>5}"]
+    lines = [f"depth given: {result.get('depth', 'run')}; regions: edge = within max CoC of a depth edge, "
+             "out = the rest, same = where the target is the input",
+             f"{'method':<14} {'PSNR dB':>8} {'SSIM':>7}" + "".join(f" {r + ' dB':>8} {r + ' SSIM':>10}" for r in REGIONS)
+             + f" {'n':>5}"]
     for r in result["table"]:
-        edge = f"{r['psnr_edge']:>8.2f}" if r.get("psnr_edge") is not None else f"{'-':>8}"
-        lines.append(f"{r['method']:<14} {r['psnr']:>8.2f} {r['ssim']:>7.4f} {edge} {r['n']:>5}")
+        cells = "".join(f" {r[f'psnr_{g}']:>8.2f} {r[f'ssim_{g}']:>10.4f}" if r.get(f"psnr_{g}") is not None
+                        else f" {'-':>8} {'-':>10}" for g in REGIONS)
+        lines.append(f"{r['method']:<14} {r['psnr']:>8.2f} {r['ssim']:>7.4f}{cells} {r['n']:>5}")
     return "\n".join(lines)
