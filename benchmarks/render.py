@@ -95,14 +95,16 @@ def timed(fn, repeat):
     return statistics.median(times), times
 
 
-# (stage, module whose name is wrapped, name): the names as dofsynth.sample and the worker call them
+# (stage, module whose name is wrapped, name): the names as the modules that call them see them
+# (a stage's time excludes the stages timed inside it: "encode aif+dof" is the sRGB codes
+# around "PNG deflate")
 STAGES = (("scene", "dofsynth.generate.worker", "sample_scene"), ("compose", "dofsynth.sample", "scene_layers"),
-          ("highlight boost, inverse", "dofsynth.sample", "boost"),
-          ("highlight boost, inverse", "dofsynth.sample", "unboost"), ("render", "dofsynth.sample", "render_planes"),
-          ("encode aif+dof", "dofsynth.sample", "encode_srgb_png_rows"),
-          ("encode aif+dof", "dofsynth.sample", "encode_srgb_png_planar"),  # dof.N.png (planar render)
-          ("encode aif+dof", "dofsynth.sample", "encode_png8"),
-          ("encode cover", "dofsynth.sample", "encode_alphas"), ("encode depth", "dofsynth.sample", "encode_depth"))
+          ("highlight boost, inverse", "dofsynth.render.look", "boost"),
+          ("highlight boost, inverse", "dofsynth.render.look", "unboost"), ("render", "dofsynth.render.look", "render_planes"),
+          ("encode aif+dof", "dofsynth.record", "encode_srgb_png_rows"),
+          ("encode aif+dof", "dofsynth.record", "encode_srgb_png_planar"),  # dof.N.png (planar render)
+          ("encode aif+dof", "dofsynth.record", "encode_png8"), ("PNG deflate", "dofsynth.codecs", "encode_png_rgb"),
+          ("encode cover", "dofsynth.record", "encode_alphas"), ("encode depth", "dofsynth.record", "encode_depth"))
 
 
 def generation_stages(sizes, samples: int) -> None:
