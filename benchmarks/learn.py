@@ -2,6 +2,7 @@
 under an hour.
 
     .venv/bin/python benchmarks/learn.py [--out out/learn-bench] [--part all|networks|main]
+    .venv/bin/python benchmarks/learn.py --part real [--seeds 3] [--limit N]
 
 1. Data: recipes/learn.toml (the demo recipe at 256 px, max CoC up to 8 px, built-in assets),
    2000 train + 100 test samples, generated into OUT/data (kept and reused when present).
@@ -16,8 +17,16 @@ under an hour.
    made the targets), the all-in-focus input; PSNR, SSIM and PSNR in the band within max CoC
    of a depth edge; then the paper's loss J against J plus an L1 term. The validation PSNR
    curve of the main run is printed too.
+4. Real photos (--part real, apart from all; issue #25): recipes/learn-real.toml (the real
+   photos and mattes of ../shared/assets at 512x341 px, max CoC 12-24 px, train and test split
+   by asset; 400 + 40 scenes, 2 targets each) into OUT/data-real; recipes/train-learn-real.toml
+   (the hybrid model, 128 px crops, trained on the depth errors of `eval --depth realistic`),
+   the paper's networks on the same data, and the hybrid in linear light ([data] color), each
+   trained with --seeds seeds; one table on the test split, everyone given the same realistic
+   depth: PSNR and SSIM overall, in the edge band, outside it and where no blur reaches (the
+   target is the input), the mean of the seeds and their range. About 5 minutes per run.
 Every size (image, crops, low resolution, steps, batch, parameters) is printed. Runs go to
-OUT/runs/<name>; a finished run is reused (delete it to train again).
+OUT/runs/<config hash>; a finished run is reused (delete it to train again).
 """
 from __future__ import annotations
 
@@ -37,7 +46,7 @@ from dofsynth.recipe import load_recipe
 from dofsynth.train.config import load, replace, to_toml
 from dofsynth.train.evaluate import evaluate_run
 from dofsynth.train.loop import train
-from dofsynth.train.models import DeepLensNet
+from dofsynth.train.checkpoint import build_model
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "learn.toml"
@@ -56,16 +65,16 @@ NETWORKS = {  # [model] settings: the paper's network, then each official-code o
 }
 
 
-def make_data(out: Path) -> Path:
-    data = out / "data"
+def make_data(out: Path, recipe: Path = RECIPE, name: str = "data") -> Path:
+    data = out / name
     try:
         load_manifest(data)
         return data
     except FileNotFoundError:
         pass
     t0 = time.perf_counter()
-    generate(load_recipe(RECIPE), data, workers=2, progress=False)
-    print(f"generated {RECIPE.name} into {data} in {time.perf_counter() - t0:.0f} s")
+    generate(load_recipe(recipe), data, workers=2, progress=False)
+    print(f"generated {recipe.name} into {data} in {time.perf_counter() - t0:.0f} s")
     return data
 
 
@@ -77,7 +86,7 @@ def run(name: str, cfg, data: Path, out: Path) -> Path:
     log = io.StringIO()
     train(cfg, data, folder, device="cpu", out=log)
     print(f"  trained {name!r}: {cfg.train.max_steps} steps in {time.perf_counter() - t0:.0f} s "
-          f"({sum(p.numel() for p in DeepLensNet(cfg.model).parameters()):,} parameters)", flush=True)
+          f"({sum(p.numel() for p in build_model(cfg).parameters()):,} parameters)", flush=True)
     return folder
 
 
@@ -109,7 +118,7 @@ def part_networks(base, data: Path, out: Path) -> None:
         cfg = replace(replace(base, "model", **kw), "train", max_steps=steps, checkpoint_interval=steps,
                       eval_interval=steps)
         v = last_val(run(f"net {name}", cfg, data, out))
-        n = sum(p.numel() for p in DeepLensNet(cfg.model).parameters())
+        n = sum(p.numel() for p in build_model(cfg).parameters())
         lines.append(f"| {name:<26} | {n:>10,} | {v['val_psnr']:>11.2f} | {v['val_loss']:.4f} |")
     print("\n".join(lines), flush=True)
 
@@ -148,14 +157,75 @@ def part_main(base, data: Path, out: Path) -> None:
     print("  ".join(f"step {s}: {float(p):.2f} dB" for s, p in curve))
 
 
+REAL_RECIPE = ROOT / "recipes" / "learn-real.toml"
+REAL_CONFIG = ROOT / "recipes" / "train-learn-real.toml"
+# the paper's two networks on the same data, at the size of recipes/train-learn.toml's
+DEEPLENS = {"kind": "deeplens", "feat_channels": 8, "kp_width": 16, "kp_depth": 3,
+            "up_width": 16}
+METRICS = [("psnr", "PSNR"), ("ssim", "SSIM")]
+REGION_NAMES = [("", "overall"), ("_edge", "edge band"), ("_out", "outside it"), ("_same", "target = input")]
+
+
+def spread(values: list[float], digits: int) -> str:
+    """The mean of the seeds' values and their range."""
+    if len(values) == 1:
+        return f"{values[0]:.{digits}f}"
+    return f"{sum(values) / len(values):.{digits}f} ({min(values):.{digits}f}-{max(values):.{digits}f})"
+
+
+def part_real(out: Path, seeds: list[int], limit: int | None) -> None:
+    """The lens-blur benchmark of issue #25: recipes/learn-real.toml (real photos, split by
+    asset, max CoC 12-24 px), the hybrid model and the paper's networks trained with each seed
+    on realistic depth errors; everyone given the same realistic depth on the test split."""
+    recipe, base = load_recipe(REAL_RECIPE), load(REAL_CONFIG)
+    data = make_data(out, REAL_RECIPE, "data-real")
+    d = base.data
+    h, w = recipe.frame
+    print(f"\n## Real photos: {REAL_RECIPE.name}, {w}x{h} px, max CoC {recipe.focus.max_coc[0]:g}-"
+          f"{recipe.focus.max_coc[1]:g} px, {recipe.samples.train} train ({d.val_share:.0%} held out for validation) + "
+          f"{recipe.samples.test} test scenes x {recipe.focus.targets_per_scene} targets, split by asset")
+    print(f"training: {REAL_CONFIG.name}, {d.crop} px crops, batch {d.batch_size}, {base.train.max_steps} steps, "
+          f"lr {base.train.lr:g}, depth errors of [augment] (= eval --depth realistic), seeds {seeds}; "
+          f"test: {'all' if limit is None else limit} scenes, depth realistic, evaluation seed 12345")
+    kinds = {"hybrid": base, "deeplens (paper networks)": replace(base, "model", **DEEPLENS),
+             "hybrid, color = linear": replace(base, "data", color="linear")}
+    tables: dict[str, list[dict]] = {}
+    for name, cfg in kinds.items():
+        for seed in seeds:
+            folder = run(f"{name}, seed {seed}", replace(cfg, "train", seed=seed), data, out)
+            t0 = time.perf_counter()
+            table = {r["method"]: r for r in evaluate_run(folder, data, depth="realistic", limit=limit,
+                                                           device="cpu")["table"]}
+            print(f"  evaluated in {time.perf_counter() - t0:.0f} s", flush=True)
+            tables.setdefault(name, []).append(table["network"])
+            for method in ("classical", "all-in-focus"):  # the same for every run: the same inputs
+                tables.setdefault(method, [table[method]])
+    header = "| method | " + " | ".join(f"{m} {r}" for r_, r in REGION_NAMES for _, m in METRICS) + " |"
+    print("\n### Test split, everyone given the same realistic depth (mean of the seeds, range)\n")
+    print(header + "\n|" + "---|" * (1 + len(REGION_NAMES) * len(METRICS)))
+    for name, rows in tables.items():
+        cells = []
+        for r_, _ in REGION_NAMES:
+            for m, _ in METRICS:
+                vals = [row[f"{m}{r_}"] for row in rows if row.get(f"{m}{r_}") is not None]
+                cells.append(spread(vals, 2 if m == "psnr" else 4) if vals else "-")
+        print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "learn-bench")
-    ap.add_argument("--part", choices=("all", "networks", "main"), default="all")
+    ap.add_argument("--part", choices=("all", "networks", "main", "real"), default="all",
+                    help="real: the lens-blur benchmark on real photos (recipes/learn-real.toml), not part of all")
+    ap.add_argument("--seeds", type=int, default=3, help="with --part real: training seeds per model (default 3)")
+    ap.add_argument("--limit", type=int, default=None, help="with --part real: test scenes scored (default all)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     progress.set_verbosity(quiet=True)  # the training bars; this script prints its own lines
+    if args.part == "real":
+        part_real(args.out, list(range(args.seeds)), args.limit)
+        return
     recipe, base = load_recipe(RECIPE), load(CONFIG)
     data = make_data(args.out)
     d = base.data

@@ -23,6 +23,7 @@ dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
 
 # The data recipe each shipped training config (recipes/) is sized for; docs/training.md has the table.
 DATA_RECIPES = {"train-tiny.toml": "smoke.toml", "train-demo.toml": "demo.toml", "train-learn.toml": "learn.toml",
+                "train-learn-real.toml": "learn-real.toml",
                 "train-deeplens.toml": "deeplens-18k.toml", "train-depth-tiny.toml": "smoke.toml",
                 "train-depth-learn.toml": "learn.toml", "train-depth.toml": "deeplens-18k.toml"}
 
