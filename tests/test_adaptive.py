@@ -136,7 +136,7 @@ def test_rectangles_cover_every_marked_tile_and_merge_when_it_pays():
 def test_batched_cells_equal_cell_by_cell(monkeypatch):
     """Constant-disparity planes are blurred for all cells in one batch; above BATCH_MAX they
     go cell by cell: the same render to float32 rounding."""
-    import dofsynth.render.subaperture as sub
+    import dofsynth.render.cellblur as sub
 
     planes = _scene(96)
     want = render_planes(planes, 0.35, 10.0, Disk(), method="subaperture", cells=2)
