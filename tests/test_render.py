@@ -117,8 +117,15 @@ def test_nearly_constant_map_equals_constant_plane():
     same = render_planes([opaque(img, np.full((40, 40), 0.25, np.float32))], 0.6, 20.0)
     np.testing.assert_array_equal(same, const)
     tilt = np.full((40, 40), 0.25, np.float32)
-    tilt[:, 20:] = np.nextafter(np.float32(0.25), np.float32(1))  # two levels, 1e-7 px apart
+    tilt[:, 20:] = np.nextafter(np.float32(0.25), np.float32(1))  # CoC -7 px, a grid level, and 1e-7 px more
     np.testing.assert_allclose(render_planes([opaque(img, tilt)], 0.6, 20.0), const, atol=2e-5)
+    # off the grid (-7.2 px, between the levels -7.5 and -7): the two levels' mix, within the
+    # bound of docs/rendering.md for white noise (1.5e-3 measured)
+    const = render_planes([opaque(img, 0.24)], 0.6, 20.0)
+    tilt = np.full((40, 40), 0.24, np.float32)
+    tilt[:, 20:] = 0.24001  # 2e-4 px more
+    err = np.abs(render_planes([opaque(img, tilt)], 0.6, 20.0) - const)
+    assert 1e-5 < err.max() < 2e-3, err.max()
 
     levels, k0, f = level_weights(np.full((4, 4), -7.0, np.float32), 0.5)
     assert levels.tolist() == [-7.0] and not k0.any() and not f.any()
@@ -293,12 +300,17 @@ def test_broadcast_ramp_equals_the_full_map():
 
 
 def test_level_grid_spacing():
-
+    """Levels cover the range from the last grid level below it to the first above; the gap
+    grows with the radius; every range takes its levels from one grid (the same floats: their
+    kernels are computed once and cached)."""
     np.testing.assert_allclose(level_grid(-3.0, 1.0, 0.5, 0.0), np.arange(-3.0, 1.01, 0.5))
+    np.testing.assert_allclose(level_grid(-2.8, 0.7, 0.5, 0.0), np.arange(-3.0, 1.01, 0.5))
     lv = level_grid(-40.0, 30.0, 0.5, 1 / 32)
     gaps = np.diff(lv)
-    assert lv[0] == -40.0 and lv[-2] < 30.0 <= lv[-1]
-    np.testing.assert_allclose(gaps, np.maximum(0.5, np.abs(lv[:-1]) / 32))
+    assert lv[0] <= -40.0 < lv[1] and lv[-2] < 30.0 <= lv[-1] and 0.0 in lv
+    np.testing.assert_allclose(gaps, np.maximum(0.5, np.minimum(np.abs(lv[:-1]), np.abs(lv[1:])) / 32))
+    inner = level_grid(-23.3, -11.1, 0.5, 1 / 32)
+    assert set(inner.tolist()) <= set(lv.tolist()) and inner.size < lv.size
     big = level_grid(-120.0, -40.0, 0.5, 1 / 32)  # CoC of a 4096 px frame: ~36 levels, not 161
     assert big.size < 0.3 * level_grid(-120.0, -40.0, 0.5, 0.0).size
     assert level_grid(-7.0, -7.0, 0.5, LEVEL_RATIO).tolist() == [-7.0]

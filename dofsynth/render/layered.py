@@ -10,8 +10,9 @@ beyond it, so its blurred edge does not fade there and show what lies behind).
 Constant-disparity planes are convolved exactly (float32 FFT, overlap-save tiles for large
 ones; cv2 for tiny kernels), cropped to the plane's alpha bounding box plus the kernel radius,
 one channel at a time. Planes whose disparity varies use a normalized scatter: the signed CoC
-is split into levels `c_k` anchored at the smallest CoC and at most
-`max(level_step, level_ratio * |c_k|)` pixels apart; each pixel is shared between its two
+is split into levels `c_k` of one grid fixed in CoC (shared by all planes and samples, so
+their kernels are computed once per process), at most `max(level_step, level_ratio * |c_k|)`
+pixels apart; each pixel is shared between its two
 neighbouring levels with linear weights `w_k`, and `out = sum_k K_k * (w_k P) / sum_k K_k * w_k`
 (the denominator is the same scatter applied to ones; a 1-D convolution when the map is a
 broadcast row or column). A constant map is one level, i.e. the exact constant result. For a
@@ -72,29 +73,49 @@ def _composite_constant(acc, rgb, alpha, box, c, aperture, backmost, margin: int
                       acc[ch, oy0:oy1, ox0:ox1], gy0 - s - oy0, gx0 - s - ox0)
 
 
+_GRIDS: dict[tuple[float, float], np.ndarray] = {}  # (level_step, level_ratio) -> its levels >= 0 so far
+
+
+def _positive_levels(level_step: float, level_ratio: float, reach: float) -> np.ndarray:
+    """The grid's levels >= 0 (px), from 0 to the first one >= reach: g_0 = 0 and
+    g_{k+1} = g_k + max(level_step, level_ratio * g_k); computed once per spacing and extended
+    as larger radii come (the same float values every time)."""
+    key = (float(level_step), float(level_ratio))
+    grid = _GRIDS.get(key)
+    if grid is None or grid[-1] < reach:
+        levels = [0.0] if grid is None else grid.tolist()
+        while levels[-1] < reach:
+            c = levels[-1]
+            levels.append(c + max(level_step, level_ratio * c))
+        grid = _GRIDS[key] = np.array(levels)
+    return grid
+
+
 def level_grid(cmin: float, cmax: float, level_step: float, level_ratio: float = 0.0) -> np.ndarray:
-    """CoC levels (pixels) from c_min up to the first level >= c_max: c_0 = c_min and
-    c_{k+1} = c_k + max(level_step, level_ratio * |c_k|). With level_ratio 0 the step is fixed;
-    above 0 it grows with the radius, where neighbouring kernels differ relatively less."""
+    """CoC levels (pixels) covering [c_min, c_max], taken from one grid that every plane of every
+    sample shares (so each level's kernels are computed once per process and cached): 0 and
+    +-g_k, g_{k+1} = g_k + max(level_step, level_ratio * g_k), from the last level <= c_min to
+    the first >= c_max. With level_ratio 0 the step is fixed; above 0 it grows with the radius,
+    where neighbouring kernels differ relatively less. A constant map (c_min = c_max) is the one
+    level c_min itself."""
     if cmax <= cmin:
         return np.array([float(cmin)])
-    if level_ratio <= 0.0:
-        n = max(int(math.ceil((cmax - cmin) / level_step)), 1) + 1
-        return cmin + level_step * np.arange(n)
-    levels = [float(cmin)]
-    while levels[-1] < cmax:
-        c = levels[-1]
-        levels.append(c + max(level_step, level_ratio * abs(c)))
-    return np.array(levels)
+    pos = _positive_levels(level_step, level_ratio, max(abs(cmin), abs(cmax)))
+    grid = np.concatenate([-pos[:0:-1], pos])
+    lo = int(np.searchsorted(grid, cmin, side="right")) - 1  # the last level <= c_min
+    hi = int(np.searchsorted(grid, cmax, side="left"))  # the first level >= c_max
+    return grid[lo : hi + 1]
 
 
 def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0):
-    """CoC levels (pixels, `level_grid` from c_min) covering [c_min, c_max], and for each pixel
-    its lower level index k0 and the weight f of level k0+1 (1 - f goes to level k0), linear
-    in the pixel's CoC between the two levels.
+    """CoC levels (pixels, `level_grid`) covering [c_min, c_max], and for each pixel its lower
+    level index k0 and the weight f of level k0+1 (1 - f goes to level k0), linear in the
+    pixel's CoC between the two levels.
 
-    Anchoring the levels at c_min keeps the result continuous in focus, max_coc and the map (a
-    new top level enters with weight 0); a constant map is a single level.
+    The levels lie on a grid fixed in CoC, so the result is continuous in focus, max_coc and
+    the map (a level enters or leaves with weight 0) except where a map becomes constant: that
+    is a single level, the constant-plane result, which a map varying by a hair differs from by
+    the interpolation between its two grid levels (docs/rendering.md bounds it).
     """
     cmin, cmax = float(cmap.min()), float(cmap.max())
     levels = level_grid(cmin, cmax, level_step, level_ratio)
@@ -102,13 +123,8 @@ def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0)
         return levels, np.zeros(cmap.shape, np.int32), np.zeros(cmap.shape, np.float32)
     n = levels.size
     c = cmap.astype(np.float64)
-    if level_ratio <= 0.0:
-        t = (c - cmin) / level_step
-        k0 = np.clip(np.floor(t), 0, n - 2).astype(np.int32)
-        f = np.clip(t - k0, 0.0, 1.0).astype(np.float32)
-    else:
-        k0 = np.clip(np.searchsorted(levels, c, side="right") - 1, 0, n - 2).astype(np.int32)
-        f = np.clip((c - levels[k0]) / (levels[k0 + 1] - levels[k0]), 0.0, 1.0).astype(np.float32)
+    k0 = np.clip(np.searchsorted(levels, c, side="right") - 1, 0, n - 2).astype(np.int32)
+    f = np.clip((c - levels[k0]) / (levels[k0 + 1] - levels[k0]), 0.0, 1.0).astype(np.float32)
     return levels, k0, f
 
 
