@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/per_sample.py                              # this tree, 24 samples per case
     git worktree add /tmp/base 583f735                                      # the code before a change
     .venv/bin/python benchmarks/per_sample.py --tree /tmp/base --tree .    # both, interleaved, one run
+    .venv/bin/python benchmarks/per_sample.py --tree /tmp/base --tree . --method layered   # one method for all
 
 Each case renders the same samples of a recipe (each tree's own copy of it) at --size px (max CoC scaled from the recipe's
 own size, so 32 px at 1024 px for recipes/deeplens-18k.toml): "built-in" is that recipe with
@@ -41,15 +42,21 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "assets"
 
 
-def _recipe(case: str, size: int, samples: int):
+def _recipe(case: str, size: int, samples: int, method: str = ""):
     """The case's recipe of the tree under test (the working folder: its own defaults, such as
-    its render method), sized by benchmarks/generate.py's rules; its paths resolve here."""
+    its render method, unless `method` names one), sized by benchmarks/generate.py's rules; its
+    paths resolve here."""
+    import dataclasses
+
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import generate as bench  # this tree's helpers; the recipe parser is the tree under test
 
     name = "deeplens-18k.toml" if case == "built-in" else "shared-assets.toml"
     text = (Path.cwd() / "recipes" / name).read_text(encoding="utf-8")
-    return bench.bench_recipe(text, size, samples) if case == "built-in" else bench.real_recipe(size, samples, text=text)
+    recipe = bench.bench_recipe(text, size, samples) if case == "built-in" else bench.real_recipe(size, samples, text=text)
+    if method:
+        recipe = dataclasses.replace(recipe, render=dataclasses.replace(recipe.render, method=method))
+    return recipe
 
 
 def _asset_bytes(library, record: dict) -> list[bytes]:
@@ -99,14 +106,14 @@ def _floor(library, key: str, members: dict[str, bytes], folder: Path) -> float:
     return spent
 
 
-def child(case: str, size: int, total: int, indices: list[int], warm: int) -> dict:
+def child(case: str, size: int, total: int, indices: list[int], warm: int, method: str = "") -> dict:
     """One process's measurements (run with the tree under test first on sys.path)."""
     from dofsynth.generate import render_one
     from dofsynth.generate.worker import library_for, setup_process
     from dofsynth.shards import write_shard
 
     setup_process()  # as in a generation worker: one OpenCV thread, the workers' malloc settings
-    recipe = _recipe(case, size, total)
+    recipe = _recipe(case, size, total, method)
     library = library_for(recipe)
     out = {"sample": [], "floor": []}
     with tempfile.TemporaryDirectory() as tmp:
@@ -134,13 +141,13 @@ def _own_peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _run_child(tree: Path, case: str, size: int, total: int, indices: list[int], warm: int) -> dict:
+def _run_child(tree: Path, case: str, size: int, total: int, indices: list[int], warm: int, method: str = "") -> dict:
     code = ("import sys, json; sys.path.insert(0, sys.argv[1]); sys.path.insert(1, sys.argv[2]); "
             "import per_sample as p; print(json.dumps(p.child(sys.argv[3], int(sys.argv[4]), int(sys.argv[5]), "
-            "json.loads(sys.argv[6]), int(sys.argv[7]))))")
+            "json.loads(sys.argv[6]), int(sys.argv[7]), sys.argv[8])))")
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     res = subprocess.run([sys.executable, "-c", code, str(tree), str(ROOT / "benchmarks"), case, str(size), str(total),
-                          json.dumps(indices), str(warm)], capture_output=True, text=True, env=env, cwd=tree)
+                          json.dumps(indices), str(warm), method], capture_output=True, text=True, env=env, cwd=tree)
     if res.returncode:
         raise SystemExit(f"{tree} {case}: the measuring process failed:\n{res.stderr[-3000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -154,6 +161,8 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=int, default=24, help="samples per case and tree (default 24)")
     ap.add_argument("--rounds", type=int, default=3, help="processes per case and tree, interleaved (default 3)")
     ap.add_argument("--cases", nargs="+", default=["built-in", "real"], choices=["built-in", "real"])
+    ap.add_argument("--method", default="", help="render every tree's samples with this method (default: each "
+                    "tree's recipes' own)")
     args = ap.parse_args(argv)
     trees = [t.resolve() for t in (args.tree or [ROOT])]
     cases = [c for c in args.cases if c != "real" or (SHARED / "SOURCES.md").is_file()]
@@ -162,14 +171,14 @@ def main(argv=None) -> int:
     print(f"cores: {os.cpu_count()}, load average: {' '.join(f'{x:.1f}' for x in os.getloadavg())}; "
           f"{args.size} px, {args.samples} samples per case in {args.rounds} interleaved processes", flush=True)
     if "real" in cases:  # the estimated foregrounds on disk first, as in any run after the first
-        _run_child(trees[-1], "real", args.size, args.samples, list(range(args.samples)), args.samples)
+        _run_child(trees[-1], "real", args.size, args.samples, list(range(args.samples)), args.samples, args.method)
     per = args.samples // args.rounds
     got = {(t, c): {"sample": [], "floor": [], "first": [], "peak_mib": 0.0} for t in trees for c in cases}
     for r in range(args.rounds):
         indices = list(range(r * per, (r + 1) * per if r < args.rounds - 1 else args.samples))
         for tree in trees:
             for case in cases:
-                m = _run_child(tree, case, args.size, args.samples, indices, args.samples + r)
+                m = _run_child(tree, case, args.size, args.samples, indices, args.samples + r, args.method)
                 g = got[(tree, case)]
                 g["sample"] += m["sample"]
                 g["floor"] += m["floor"]
