@@ -48,6 +48,7 @@ from dofsynth.recipe import load_recipe
 from dofsynth.train.config import load, replace, to_toml
 from dofsynth.train.evaluate import evaluate_run
 from dofsynth.train.loop import train
+from dofsynth.train import checkpoint
 from dofsynth.train.checkpoint import build_model
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -84,11 +85,14 @@ def run(name: str, cfg, data: Path, out: Path) -> Path:
     """Train `cfg` into OUT/runs/<config hash> (reused when finished: the same config under two
     names trains once); returns the folder."""
     folder = out / "runs" / hashlib.sha256(to_toml(cfg).encode()).hexdigest()[:12]
+    params = f"{sum(p.numel() for p in build_model(cfg).parameters()):,} parameters"
+    if (folder / "ckpt.pt").is_file() and checkpoint.load(folder / "ckpt.pt")["step"] >= cfg.train.max_steps:
+        print(f"  {name!r}: {cfg.train.max_steps} steps, trained before ({params}; {folder})", flush=True)
+        return folder
     t0 = time.perf_counter()
     log = io.StringIO()
     train(cfg, data, folder, device="cpu", out=log)
-    print(f"  trained {name!r}: {cfg.train.max_steps} steps in {time.perf_counter() - t0:.0f} s "
-          f"({sum(p.numel() for p in build_model(cfg).parameters()):,} parameters)", flush=True)
+    print(f"  trained {name!r}: {cfg.train.max_steps} steps in {time.perf_counter() - t0:.0f} s ({params})", flush=True)
     return folder
 
 

@@ -174,11 +174,12 @@ def render_cells(planes, focus: float, max_coc: float, parts, options, inner: in
     m = inner
     back = planes[0]
     R = back_cells(back, focus, max_coc, parts, options, H, W, m)
-    cutouts = _cutouts(planes)
-    if m:  # those that reach what is computed
-        cutouts = [(p, box) for p, box in cutouts
-                   if (o := cutout_reach(box, support_radius(coc_reach(p, focus, max_coc)), H, W, m)[1])[1] > o[0]
-                   and o[3] > o[2]]
+
+    def reaches(p, box) -> bool:  # whether any of the cutout's blur lands on what is computed
+        y0, y1, x0, x1 = cutout_reach(box, support_radius(coc_reach(p, focus, max_coc)), H, W, m)[1]
+        return y1 > y0 and x1 > x0
+
+    cutouts = [(p, box) for p, box in _cutouts(planes) if not m or reaches(p, box)]
     layers, front = [], None
     for i, (p, box) in enumerate(cutouts):
         cuts, summed = cutout_cells(p, box, focus, max_coc, parts, options, H, W, m, front=i == len(cutouts) - 1)
