@@ -24,7 +24,6 @@ No torch here: this module is on the data-generation path.
 """
 from __future__ import annotations
 
-
 import numpy as np
 
 from dofsynth.optics.coc import coc_radius
