@@ -4,6 +4,7 @@
     git worktree add /tmp/base 583f735                                      # the code before a change
     .venv/bin/python benchmarks/per_sample.py --tree /tmp/base --tree .    # both, interleaved, one run
     .venv/bin/python benchmarks/per_sample.py --tree /tmp/base --tree . --method layered   # one method for all
+    .venv/bin/python benchmarks/per_sample.py --tree /tmp/base --tree .:layered --tree .  # this tree twice
 
 Each case renders the same samples of a recipe (each tree's own copy of it) at --size px (max CoC scaled from the recipe's
 own size, so 32 px at 1024 px for recipes/deeplens-18k.toml): "built-in" is that recipe with
@@ -155,8 +156,9 @@ def _run_child(tree: Path, case: str, size: int, total: int, indices: list[int],
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--tree", type=Path, action="append",
-                    help="a checkout of dofsynth to measure (repeat for side by side; default: this one)")
+    ap.add_argument("--tree", action="append",
+                    help="a checkout of dofsynth to measure, DIR or DIR:METHOD (its samples rendered with METHOD); "
+                         "repeat for side by side (default: this one)")
     ap.add_argument("--size", type=int, default=1024, help="frame size in px (default 1024)")
     ap.add_argument("--samples", type=int, default=24, help="samples per case and tree (default 24)")
     ap.add_argument("--rounds", type=int, default=3, help="processes per case and tree, interleaved (default 3)")
@@ -164,21 +166,23 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="", help="render every tree's samples with this method (default: each "
                     "tree's recipes' own)")
     args = ap.parse_args(argv)
-    trees = [t.resolve() for t in (args.tree or [ROOT])]
+    # (folder, method): "--tree DIR:METHOD" renders that tree's samples with METHOD
+    trees = [(Path(t.split(":")[0]).resolve(), t.split(":")[1] if ":" in t else args.method)
+             for t in (args.tree or [str(ROOT)])]
     cases = [c for c in args.cases if c != "real" or (SHARED / "SOURCES.md").is_file()]
     if len(cases) < len(args.cases):
         print(f"(no real-photo case: {SHARED} is missing)")
     print(f"cores: {os.cpu_count()}, load average: {' '.join(f'{x:.1f}' for x in os.getloadavg())}; "
           f"{args.size} px, {args.samples} samples per case in {args.rounds} interleaved processes", flush=True)
     if "real" in cases:  # the estimated foregrounds on disk first, as in any run after the first
-        _run_child(trees[-1], "real", args.size, args.samples, list(range(args.samples)), args.samples, args.method)
+        _run_child(trees[-1][0], "real", args.size, args.samples, list(range(args.samples)), args.samples, trees[-1][1])
     per = args.samples // args.rounds
     got = {(t, c): {"sample": [], "floor": [], "first": [], "peak_mib": 0.0} for t in trees for c in cases}
     for r in range(args.rounds):
         indices = list(range(r * per, (r + 1) * per if r < args.rounds - 1 else args.samples))
         for tree in trees:
             for case in cases:
-                m = _run_child(tree, case, args.size, args.samples, indices, args.samples + r, args.method)
+                m = _run_child(tree[0], case, args.size, args.samples, indices, args.samples + r, tree[1])
                 g = got[(tree, case)]
                 g["sample"] += m["sample"]
                 g["floor"] += m["floor"]
@@ -192,7 +196,8 @@ def main(argv=None) -> int:
             g = got[(tree, case)]
             s, f = g["sample"], g["floor"]
             mean, floor = statistics.fmean(s), statistics.fmean(f)
-            print(f"{str(tree)[-28:]:<28} {case:<9} {mean:>9.3f} {statistics.stdev(s):>6.3f} "
+            name = str(tree[0])[-20:] + (f":{tree[1]}" if tree[1] else "")
+            print(f"{name[-28:]:<28} {case:<9} {mean:>9.3f} {statistics.stdev(s):>6.3f} "
                   f"{min(s):>5.2f}-{max(s):<6.2f} {floor:>8.3f} {mean / floor:>6.2f} {statistics.fmean(g['first']):>8.2f} "
                   f"{g['peak_mib']:>9.0f} {mean / base:>9.2f}", flush=True)
     print("(CPU seconds per sample, mean over the samples; ratio: mean sample / mean floor; first: the warm-up "
