@@ -26,6 +26,9 @@ if "DOFSYNTH_TEST_CACHE" not in os.environ:
     os.environ["DOFSYNTH_TEST_CACHE"] = tempfile.mkdtemp(prefix="dofsynth-test-cache-")
     atexit.register(shutil.rmtree, os.environ["DOFSYNTH_TEST_CACHE"], True)  # by the process that made it
 os.environ["DOFSYNTH_CACHE"] = os.environ["DOFSYNTH_TEST_CACHE"]
+# and so are Hugging Face datasets' prepared copies: it keys them on a file's path, size and
+# modification time, which a data set rebuilt at the same pytest path can share with an old one
+os.environ["HF_DATASETS_CACHE"] = os.path.join(os.environ["DOFSYNTH_TEST_CACHE"], "hf-datasets")
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_ASSETS = Path(__file__).resolve().parents[2] / "shared" / "assets"
