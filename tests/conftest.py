@@ -243,3 +243,11 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def torchrun_failure(proc) -> str:
+    """The message for a failed `torch.distributed.run`: the ranks' own lines first (a rank's
+    abort message comes before the launcher's long summary, which alone would fill the tail),
+    then the tail of stderr."""
+    own = [line for line in proc.stderr.splitlines() if not line.startswith(("E1", "W1", "I1", " ", "Traceback"))]
+    return "\n".join(own[-40:]) + "\n---\n" + proc.stderr[-1500:]

@@ -17,6 +17,7 @@ from dofsynth.train.config import from_dict, load, replace
 from dofsynth.train.depth import (DepthNet, depth_errors, depth_loss, load_backbone, minmax,
                                   predict_disparity, spline_fit)
 from dofsynth.train.depth_data import DepthMix, Item, fit_crop, load_item, make_depth_loader, pair_files, sources
+from conftest import torchrun_failure
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -344,10 +345,7 @@ def test_two_processes_under_torchrun_train_the_depth_network(smoke_set, tmp_pat
            "-m", "dofsynth", "--", "train", "train-depth-tiny", "--data", str(smoke_set), "--run", str(run),
            "--device", "cpu", "--steps", "2", "-q"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    # on failure, the ranks' own lines first (a rank's abort message comes before the launcher's
-    # long summary, which alone would fill the tail)
-    own = [line for line in proc.stderr.splitlines() if not line.startswith(("E1", "W1", "I1", " ", "Traceback"))]
-    assert proc.returncode == 0, "\n".join(own[-40:]) + "\n---\n" + proc.stderr[-1500:]
+    assert proc.returncode == 0, torchrun_failure(proc)
     assert json.loads((run / "env.json").read_text())["world_size"] == 2
     with open(run / "log.csv") as fh:
         rows = list(csv.DictReader(fh))

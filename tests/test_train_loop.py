@@ -19,6 +19,7 @@ from dofsynth.train.config import from_dict, load, replace, to_toml
 from dofsynth.train.infer import inference_sizes, render_photo, render_with, upsampling_steps
 from dofsynth.train.models import DeepLensNet
 from test_train_data import make_dataset, tiny_config
+from conftest import torchrun_failure
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -481,7 +482,7 @@ def test_two_processes_under_torchrun_train_together_and_rank0_writes(setup, tmp
            "--device", "cpu", "--steps", "2"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, env=env)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.returncode == 0, torchrun_failure(proc)
     assert json.loads((run / "env.json").read_text())["world_size"] == 2
     assert checkpoint.load(run / "ckpt.pt")["step"] == 2
     assert [r["step"] for r in _rows(run)] == ["0", "1", "2"]     # one writer (step 0: the start, validated)
