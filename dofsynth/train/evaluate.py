@@ -16,7 +16,8 @@ differently are scored on the same inputs. PSNR and SSIM (skimage.metrics, sRGB 
 data_range 1) are taken against the rendered target, over the frame and in three regions:
 the band within the target's max CoC of a depth edge of the clean disparity ("edge"), where a
 single-image renderer fails; the rest of the frame ("out"); and where no blur reaches by the
-clean depth ("same": the target is the input there, `models.untouched`). The table is printed and written to RUN/eval.csv and RUN/eval.json.
+clean depth ("same": the target is the input there, `models.untouched`). The table is printed
+and written to RUN/eval.csv and RUN/eval.json.
 
 A depth run ([train] task = "depth") is scored by `evaluate_depth` instead: the MAE of its
 normalized disparity against the split's (min-max normalized) disparity, raw and after the
@@ -107,8 +108,8 @@ def _psnr(ref: np.ndarray, pred: np.ndarray) -> float:
 def _metrics(pred_srgb: np.ndarray, target_srgb: np.ndarray, band: np.ndarray, same: np.ndarray) -> dict:
     """PSNR and SSIM over the frame, and in each region of REGIONS (`band`; outside it; `same`,
     where no blur reaches by the clean depth, so the target is the input): PSNR over its pixels
-    (at most PSNR_CAP), SSIM the mean of the SSIM map
-    (7 px windows, the channels' mean) over them; None for an empty region."""
+    (at most PSNR_CAP), SSIM the mean of the SSIM map (7 px windows, the channels' mean) over
+    them; None for an empty region."""
     pred = np.clip(pred_srgb, 0.0, 1.0).astype(np.float64)
     ref = target_srgb.astype(np.float64)
     side = min(ref.shape[:2])
