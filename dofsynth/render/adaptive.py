@@ -246,7 +246,7 @@ def render_adaptive(planes, focus: float, max_coc: float, aperture: Aperture, op
     # a rectangle's pixels and one more each side (the composite's gradients) are computed, from
     # the planes cut to them plus the largest kernel's reach (edge pixels past the frame)
     pad = support_radius(max(coc_reach(p, focus, max_coc) for p in planes)) + 1
-    sub = replace(options, margin=0, level_ratio=max(options.level_ratio, 1 / 8))
+    sub = replace(options, level_ratio=max(options.level_ratio, 1 / 8))  # (render_cells sets its own margins)
     for t0, t1, s0, s1 in rectangles(need > 0, pad / TILE):
         codes = set(np.unique(need[t0:t1, s0:s1]).tolist()) - {LAYERED}
         code = codes.pop() if len(codes) == 1 else GRID  # one direction, or 2 x 2 cells for both

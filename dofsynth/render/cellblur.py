@@ -63,6 +63,19 @@ def _blur_into(out: np.ndarray, region, src: np.ndarray, ks: np.ndarray, pairs, 
             src, ks, pairs, window=(a0, b0, a1, b1))
 
 
+def _back_source(plane, g) -> np.ndarray:
+    """(3, h, w) float32 over frame box g: the backmost plane's premultiplied colour (edge
+    pixels past the frame; the colour itself where the plane is opaque)."""
+    gy0, gy1, gx0, gx1 = g
+    rgb, alpha = np.asarray(plane.rgb, np.float32), np.asarray(plane.alpha, np.float32)
+    src = np.empty((3, gy1 - gy0, gx1 - gx0), np.float32)
+    for ch in range(3):
+        grab(rgb[:, :, ch], gy0, gy1, gx0, gx1, True, src[ch])
+    if not is_one(alpha):
+        src *= grab(alpha, gy0, gy1, gx0, gx1, True)
+    return src
+
+
 def _cutout_source(plane, g) -> np.ndarray:
     """(4, h, w) float32 over frame box g: the premultiplied colour and the alpha (edge pixels
     past the frame)."""
@@ -77,7 +90,7 @@ def _cutout_source(plane, g) -> np.ndarray:
 
 def _blur_cutout(plane, box, c: float, cell: Aperture, H: int, W: int, m: int = 0):
     """A constant-disparity cutout blurred by the cell's kernel over its footprint O (inside
-    rows and columns m .. -m, `_cutout_reach`): O and a (6, h, w) stack, the premultiplied
+    rows and columns m .. -m, `cutout_reach`): O and a (6, h, w) stack, the premultiplied
     colour (3), the alpha, and the alpha's first moments about the cell's centroid (2),
     E[a_p (p - p_cell)] over the cell's aperture points p."""
     s = support_radius(c)
@@ -114,12 +127,7 @@ def _blur_back(plane, focus: float, max_coc: float, cell: Aperture, options, H: 
     y0, y1, x0, x1 = m + s + 1 - ky1, H - m + s - ky0, m + s + 1 - kx1, W - m + s - kx0
     if not stack_fits(y1 - y0, x1 - x0, 1, 1):  # a valid-mode FFT is the input's size
         return _layered_inside([plane], focus, max_coc, cell, options, m)
-    rgb, alpha = np.asarray(plane.rgb, np.float32), np.asarray(plane.alpha, np.float32)
-    src = np.empty((3, y1 - y0, x1 - x0), np.float32)
-    for ch in range(3):
-        grab(rgb[:, :, ch], y0, y1, x0, x1, True, src[ch])
-    if not is_one(alpha):
-        src *= grab(alpha, y0, y1, x0, x1, True)
+    src = _back_source(plane, (y0, y1, x0, x1))
     return np.ascontiguousarray(convolve_stack(src, ks[:1], [(0, 0), (0, 1), (0, 2)], valid=True))
 
 
@@ -152,12 +160,7 @@ def back_cells(back, focus: float, max_coc: float, parts, options, H: int, W: in
     h, w = H - 2 * m + 2 * s, W - 2 * m + 2 * s  # what they read
     if c is None or s == 0 or K == 1 or 3 * K * h * w > BATCH_MAX or not stack_fits(h, w, 1, 1):
         return [_blur_back(back, focus, max_coc, cell, options, H, W, m) for cell, _ in parts]
-    rgb, alpha = np.asarray(back.rgb, np.float32), np.asarray(back.alpha, np.float32)
-    src = np.empty((3, h, w), np.float32)
-    for ch in range(3):
-        grab(rgb[:, :, ch], m - s, H - m + s, m - s, W - m + s, True, src[ch])
-    if not is_one(alpha):
-        src *= grab(alpha, m - s, H - m + s, m - s, W - m + s, True)
+    src = _back_source(back, (m - s, H - m + s, m - s, W - m + s))
     ks = _full_kernels(parts, c)[0::3]
     pairs = [(k, ch) for k in range(K) for ch in range(3)]
     return list(convolve_stack(src, ks, pairs, valid=True).reshape(K, 3, H - 2 * m, W - 2 * m))

@@ -133,8 +133,9 @@ def _composite(R: np.ndarray, c_back, layers) -> np.ndarray:
     the cell is a R - Cov(a, R), and Cov(a, R) = E[a_p (p - p_cell)] . dR/dp, the alpha's first
     moments (`kernel_moments`, exact for a hard edge) times R's gradient in p (carried along the
     composite: d/dp of over(P, R) = dP - R da + (1 - a) dR). `layers`: per cutout, back to
-    front, (its region (y0, y1, x0, x1), its stack of `cellblur.cutout_cells` there, its CoC: a number
-    or its map over the region); c_back: the backmost plane's CoC (a number or a map)."""
+    front, (its region (y0, y1, x0, x1), its stack of `cellblur.cutout_cells` there, its CoC:
+    a number or its map over the region); c_back: the backmost plane's CoC (a number or a
+    map)."""
     G = None
     c = c_back
     for i, ((y0, y1, x0, x1), st, c_next) in enumerate(layers):
@@ -166,8 +167,8 @@ def render_cells(planes, focus: float, max_coc: float, parts, options, inner: in
     """The planes (back to front) seen through each cell of `parts` ((cell, share) pairs),
     each cell's image weighted by its share and added: linear RGB (3, H, W). Each plane is
     blurred by every cell's kernel (constant-disparity planes in one batch: cellblur's
-    `back_cells`, `cutout_cells`), then per cell composited (`_composite`): what makes few cells accurate
-    where a blurred edge occludes a blurred background. `inner` > 0: the planes go on that
+    `back_cells`, `cutout_cells`), then per cell composited (`_composite`): what makes few
+    cells accurate where a blurred edge occludes a blurred background. `inner` > 0: the planes go on that
     many px past the part computed (rows and columns inner .. -inner; the rest stays 0), at
     least every plane's kernel support radius; its outermost pixels take one-sided gradients."""
     H, W = planes[0].shape
@@ -184,7 +185,7 @@ def render_cells(planes, focus: float, max_coc: float, parts, options, inner: in
     for i, (p, box) in enumerate(cutouts):
         cuts, summed = cutout_cells(p, box, focus, max_coc, parts, options, H, W, m, front=i == len(cutouts) - 1)
         layers.append([((y0 - m, y1 - m, x0 - m, x1 - m), st, c) for (y0, y1, x0, x1), st, c in cuts])
-        front = summed if summed is not None else front
+        front = summed  # (only the frontmost can give one)
     c_back = coc_radius(compact_disparity(back), focus, max_coc)
     if m and np.ndim(c_back):
         c_back = c_back[slice(m, H - m) if c_back.shape[0] > 1 else slice(None),
@@ -215,7 +216,9 @@ def cut_planes(planes, y0: int, y1: int, x0: int, x1: int) -> list[Plane]:
     h, w = y1 - y0, x1 - x0
     out = []
     for p in planes:
-        d = p.disparity if np.ndim(p.disparity) == 0 else grab(np.broadcast_to(p.disparity, p.shape), y0, y1, x0, x1, True)
+        d = p.disparity
+        if np.ndim(d):
+            d = grab(np.broadcast_to(d, p.shape), y0, y1, x0, x1, True)
         box = None
         if p.box is not None:
             by0, by1, bx0, bx1 = p.box
