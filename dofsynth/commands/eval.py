@@ -11,8 +11,10 @@ def register(subparsers) -> None:
         help="score a trained run on the test split (DoF: against the classical renderer; depth: MAE)",
         description=(
             "Run the trained networks of RUN on every target of the test split of OUT and report "
-            "PSNR and SSIM (sRGB, against the rendered targets; PSNR also in the band within max CoC "
-            "of a depth edge) next to the classical renderer given the same disparity as a single "
+            "PSNR and SSIM (sRGB, against the rendered targets; over the frame and in three regions: "
+            "the band within max CoC of a depth edge, the rest of the frame, and where no blur reaches "
+            "by the clean depth, so the target is the input) next to the classical renderer given the "
+            "same disparity as a single "
             "image with the options that made the targets, and the all-in-focus input. --depth "
             "chooses that disparity, the same for every method and every run, so runs trained "
             "differently are scored on the same inputs. A run of the depth network ([train] task = "
