@@ -32,6 +32,7 @@ class Aperture:
     (`parse(args)`) and how a scene draws it from the recipe (`from_rules(rules, rng)`)."""
 
     kind: ClassVar[str] = ""
+    mirrored: ClassVar[bool] = False  # whether the unit shape is its own mirror image in x and in y
 
     def to_dict(self) -> dict:
         return {"kind": self.kind}
@@ -72,6 +73,7 @@ class Disk(Aperture):
     """A circular aperture; `radius` arguments are the disc radius in pixels."""
 
     kind: ClassVar[str] = "disk"
+    mirrored: ClassVar[bool] = True
 
     def chord(self, x, r):
         h = np.sqrt(np.maximum(r * r - x * x, 0.0))

@@ -20,7 +20,7 @@ from dofsynth.optics.coc import coc_radius
 from dofsynth.optics.kernel import kernel, kernel_moments, support_radius
 from dofsynth.render.fft import Convolver, convolve_stack, copy_tile, stack_fits, trim_box, trimmed
 from dofsynth.render.frame import grab, is_one
-from dofsynth.render.layered import cutout_regions, render_layered
+from dofsynth.render.layered import cutout_regions, render_layered_each
 from dofsynth.render.planes import Plane
 
 
@@ -28,7 +28,24 @@ from dofsynth.render.planes import Plane
 def _cell_kernels(cell: Aperture, c: float) -> tuple[np.ndarray, tuple[int, int, int, int]]:
     """(3, kh, kw): the cell's kernel of CoC c and its alpha-moment kernels about the cell's
     centroid (Mx - cx K, My - cy K: K (p - p_cell) in effect; each sums to 0), cut to the
-    kernel's non-zero box, which is returned (y0, x0, y1, x1) in the (2S+1)^2 array."""
+    kernel's non-zero box, which is returned (y0, x0, y1, x1) in the (2S+1)^2 array. A cell
+    of a shape that is its own mirror image (`Aperture.mirrored`) lying left of (or above) the
+    centre is its mirror cell's kernels flipped (the moment across the flip negated): one of
+    the four 2 x 2 cells (one of two halves) is computed, the others equal it to rounding."""
+    flip_x = cell.base.mirrored and cell.x1 <= 0.0
+    flip_y = cell.base.mirrored and cell.y1 <= 0.0
+    if flip_x or flip_y:
+        mirror = replace(cell, **({"x0": -cell.x1, "x1": -cell.x0} if flip_x else {}),
+                         **({"y0": -cell.y1, "y1": -cell.y0} if flip_y else {}))
+        ks, (y0, x0, y1, x1) = _cell_kernels(mirror, c)
+        n = 2 * support_radius(c) + 1
+        if flip_x:
+            ks, (x0, x1) = ks[:, :, ::-1] * np.float32([1, -1, 1])[:, None, None], (n - x1, n - x0)
+        if flip_y:
+            ks, (y0, y1) = ks[:, ::-1, :] * np.float32([1, 1, -1])[:, None, None], (n - y1, n - y0)
+        ks = np.ascontiguousarray(ks)
+        ks.setflags(write=False)
+        return ks, (y0, x0, y1, x1)
     k = kernel(cell, c)
     box = trim_box(k)
     centred = [m - np.float32(math.fsum(m.ravel().tolist())) * k for m in kernel_moments(cell, c)]
@@ -121,20 +138,21 @@ def _blur_back(plane, focus: float, max_coc: float, cell: Aperture, options, H: 
     c = None if d is None else coc_radius(d, focus, max_coc)
     s = 0 if c is None else support_radius(c)
     if s == 0:
-        return _layered_inside([plane], focus, max_coc, cell, options, m)
+        return _layered_inside([plane], focus, max_coc, [cell], options, m)[0]
     ks, (ky0, kx0, ky1, kx1) = _cell_kernels(cell, c)
     # frame pixel Y sees input rows Y + s - ky1 + 1 .. Y + s - ky0 (edge-replicated): the valid part
     y0, y1, x0, x1 = m + s + 1 - ky1, H - m + s - ky0, m + s + 1 - kx1, W - m + s - kx0
     if not stack_fits(y1 - y0, x1 - x0, 1, 1):  # a valid-mode FFT is the input's size
-        return _layered_inside([plane], focus, max_coc, cell, options, m)
+        return _layered_inside([plane], focus, max_coc, [cell], options, m)[0]
     src = _back_source(plane, (y0, y1, x0, x1))
     return np.ascontiguousarray(convolve_stack(src, ks[:1], [(0, 0), (0, 1), (0, 2)], valid=True))
 
 
-def _layered_inside(planes, focus: float, max_coc: float, cell: Aperture, options, m: int) -> np.ndarray:
-    """The layered render through the cell of rows and columns m .. -m: (3, H - 2m, W - 2m)."""
+def _layered_inside(planes, focus: float, max_coc: float, cells, options, m: int) -> list[np.ndarray]:
+    """The layered render through each of `cells` of rows and columns m .. -m: (3, H - 2m,
+    W - 2m) each (a disparity map's levels shared among them, `render_layered_each`)."""
     H, W = planes[0].shape
-    return render_layered(planes, focus, max_coc, cell, replace(options, margin=m))[:, m : H - m, m : W - m]
+    return [acc[:, m : H - m, m : W - m] for acc in render_layered_each(planes, focus, max_coc, cells, replace(options, margin=m))]
 
 
 def _blur_varying_cutout(plane, focus: float, max_coc: float, cell: Aperture, options, H: int, W: int, m: int = 0):
@@ -144,8 +162,8 @@ def _blur_varying_cutout(plane, focus: float, max_coc: float, cell: Aperture, op
     clear = Plane(np.zeros((H, W, 3), np.float32), np.zeros((H, W), np.float32), focus)  # nothing, kept in focus
     ones = Plane(np.broadcast_to(np.ones(3, np.float32), (H, W, 3)), plane.alpha, plane.disparity, plane.box)
     out = np.zeros((6, H - 2 * m, W - 2 * m), np.float32)
-    out[:3] = _layered_inside([clear, plane], focus, max_coc, cell, options, m)
-    out[3] = _layered_inside([clear, ones], focus, max_coc, cell, options, m)[0]
+    out[:3] = _layered_inside([clear, plane], focus, max_coc, [cell], options, m)[0]
+    out[3] = _layered_inside([clear, ones], focus, max_coc, [cell], options, m)[0][0]
     return (m, H - m, m, W - m), out
 
 
@@ -158,7 +176,9 @@ def back_cells(back, focus: float, max_coc: float, parts, options, H: int, W: in
     s = 0 if c is None else support_radius(c)
     K = len(parts)
     h, w = H - 2 * m + 2 * s, W - 2 * m + 2 * s  # what they read
-    if c is None or s == 0 or K == 1 or 3 * K * h * w > BATCH_MAX or not stack_fits(h, w, 1, 1):
+    if c is None:  # a disparity map: the layered scatter, each level's work shared by the cells
+        return _layered_inside([back], focus, max_coc, [cell for cell, _ in parts], options, m)
+    if s == 0 or K == 1 or 3 * K * h * w > BATCH_MAX or not stack_fits(h, w, 1, 1):
         return [_blur_back(back, focus, max_coc, cell, options, H, W, m) for cell, _ in parts]
     src = _back_source(back, (m - s, H - m + s, m - s, W - m + s))
     ks = _full_kernels(parts, c)[0::3]

@@ -18,6 +18,7 @@ import scipy.fft as sfft
 
 from dofsynth.optics.aperture import Aperture
 from dofsynth.optics.kernel import kernel, support_radius
+from dofsynth.render.frame import add_clipped
 
 # Kernels with support radius up to this many pixels (11x11) go through cv2.filter2D (direct,
 # 2-6x faster there, measured), larger ones via FFT (cv2 switches to its own slower DFT beyond).
@@ -120,6 +121,23 @@ class Convolver:
                 block = self._direct(tile, i0, i1, j0, j1)
                 dst[oy + p0 : oy + p1, ox + q0 : ox + q1] += block[p0 - i0 : p1 - i0, q0 - j0 : q1 - j0]
 
+    def add_stack_into(self, src: np.ndarray, dst: np.ndarray, oy: int, ox: int) -> None:
+        """`add_into` for each channel of src (C, h, w) into dst (C, H, W). Small kernels: one
+        cv2.filter2D over the channels stacked in one buffer, each in its own zero-padded block
+        (the kernel reaches no other block), the same values as channel by channel."""
+        if not self.direct or not (self.eh or self.ew):
+            for c in range(src.shape[0]):
+                self.add_into(copy_tile(src[c]), dst[c], oy, ox)
+            return
+        C, h, w = src.shape
+        eh, ew = self.eh, self.ew
+        pad = np.zeros((C, h + 2 * eh, w + 2 * ew), np.float32)
+        pad[:, eh : eh + h, ew : ew + w] = src
+        ay, ax = eh // 2, ew // 2
+        out = cv2.filter2D(pad.reshape(C * (h + 2 * eh), w + 2 * ew), -1, self.flipped, anchor=(ax, ay),
+                           borderType=cv2.BORDER_CONSTANT).reshape(pad.shape)
+        add_clipped(dst, oy + self.ky0, ox + self.kx0, out[:, ay : ay + h + eh, ax : ax + w + ew])
+
     def _add_bands(self, tile, dst, oy, ox, rows, width, skip, j0, j1) -> None:
         """One column tile by FFT: for each band (p0, p1, i0, i1) of `rows`, output rows p0 .. p1
         (columns skip .. skip + width of the block) from input rows i0 .. i1, columns j0 .. j1.
@@ -190,9 +208,9 @@ def convolve_stack(x: np.ndarray, kernels: np.ndarray, pairs, valid: bool = Fals
     n1 = sfft.next_fast_len(max(w, w + kw - 1 - x0, x1), real=True)
     spec = sfft.rfft2(x, s=(n0, n1))
     kspec = sfft.fft(sfft.rfft(kernels, n=n1, axis=-1), n=n0, axis=-2)  # = rfft2, without the zero rows' transforms
-    ki, ci = (list(v) for v in zip(*pairs))
-    prod = kspec[ki]
-    prod *= spec[ci]
+    prod = np.empty((len(pairs),) + spec.shape[1:], spec.dtype)
+    for i, (k, c) in enumerate(pairs):  # (no gathered copies of the spectra)
+        np.multiply(kspec[k], spec[c], out=prod[i])
     out = sfft.irfft2(prod, s=(n0, n1), overwrite_x=True)
     return out[:, y0:y1, x0:x1]
 

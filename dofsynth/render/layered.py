@@ -129,15 +129,17 @@ def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0)
 MAX_SLOPE = 0.5  # |grad c| (px per px) the Jacobian weight uses at most: it stays >= 1/2
 
 
-def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, backmost, level_step,
+def _composite_varying(accs, rgb, alpha, dmap, box, max_coc, focus, apertures, backmost, level_step,
                        level_ratio, margin: int = 0) -> None:
-    """Normalized level scatter of a plane with a disparity map, composited "over" `acc`.
+    """Normalized level scatter of a plane with a disparity map, composited "over" each of
+    `accs` through the matching one of `apertures` (the levels, their weights and each level's
+    weighted colour are computed once for all of them).
 
     Work region: O, the output (the frame for the backmost plane, else the alpha box grown by
     the largest kernel), and E, O grown by that kernel again (the pixels that reach O; outside
     the frame colour, alpha and the CoC map are edge-replicated). A map that is a broadcast row or column (a ramp) keeps its
     levels as one row or column."""
-    _, H, W = acc.shape
+    _, H, W = accs[0].shape
     cm = coc_radius(compact(np.asarray(dmap, dtype=np.float32)), focus, max_coc)
     smax = support_radius(max(abs(float(cm.min())), abs(float(cm.max()))))
     kept = margin if margin >= smax else 0  # the result is kept only inside this margin
@@ -165,12 +167,12 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         g = np.clip(np.gradient(line.astype(np.float64)), -MAX_SLOPE, MAX_SLOPE).astype(np.float32)
         slope = g[:, None] if along == 0 else g[None, :]
         slope = slope if np.any(slope) else None
-    # Accumulators over O: premultiplied colour (straight into acc for the backmost plane:
-    # acc is still black), alpha (not for an opaque backmost plane) and weight.
+    # Accumulators over O, per aperture: premultiplied colour (straight into acc for the
+    # backmost plane: acc is still black), alpha (not for an opaque backmost plane) and weight.
     oh, ow = oy1 - oy0, ox1 - ox0
-    col = acc[:, oy0:oy1, ox0:ox1] if backmost else np.zeros((3, oh, ow), np.float32)
-    a_acc = None if backmost else np.zeros((oh, ow), np.float32)
-    w_acc = np.zeros((oh, 1) if along == 0 else (1, ow) if along == 1 else (oh, ow), np.float32)
+    cols = [acc[:, oy0:oy1, ox0:ox1] if backmost else np.zeros((3, oh, ow), np.float32) for acc in accs]
+    a_accs = [None if backmost else np.zeros((oh, ow), np.float32) for _ in accs]
+    w_accs = [np.zeros((oh, 1) if along == 0 else (1, ow) if along == 1 else (oh, ow), np.float32) for _ in accs]
     # Level k touches pixels with k0 in {k-1, k}: a superset box from per-row/column ranges.
     rlo, rhi = k0c.min(axis=1), k0c.max(axis=1) + 1
     clo, chi = k0c.min(axis=0), k0c.max(axis=0) + 1
@@ -180,13 +182,13 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         clo, chi = np.broadcast_to(clo, we), np.broadcast_to(chi, we)
     for k, ck in enumerate(levels):
         rows = np.flatnonzero((rlo <= k) & (rhi >= k))
-        cols = np.flatnonzero((clo <= k) & (chi >= k))
-        if rows.size == 0 or cols.size == 0:
+        cols_k = np.flatnonzero((clo <= k) & (chi >= k))
+        if rows.size == 0 or cols_k.size == 0:
             continue
         s = support_radius(ck)
         # only pixels within s of O reach it: E is O grown by smax >= s
         y0, y1 = max(int(rows[0]), smax - s), min(int(rows[-1]) + 1, smax + oh + s)
-        x0, x1 = max(int(cols[0]), smax - s), min(int(cols[-1]) + 1, smax + ow + s)
+        x0, x1 = max(int(cols_k[0]), smax - s), min(int(cols_k[-1]) + 1, smax + ow + s)
         if y1 <= y0 or x1 <= x0:
             continue
         sub = (slice(y0, y1) if k0c.shape[0] > 1 else slice(None), slice(x0, x1) if k0c.shape[1] > 1 else slice(None))
@@ -199,45 +201,56 @@ def _composite_varying(acc, rgb, alpha, dmap, box, max_coc, focus, aperture, bac
         fy0, fy1, fx0, fx1 = y0 + ey0, y1 + ey0, x0 + ex0, x1 + ex0
         ty0, tx0 = fy0 - s - oy0, fx0 - s - ox0
         a_sub = None if one else grab(alpha, fy0, fy1, fx0, fx1, True)
-        k = kernel(aperture, float(ck))
-        kernels = [(k, wsub)]
-        if slope is not None:  # the Jacobian's first-order term: the p-moment kernel times the slope
-            mk = kernel_moments(aperture, float(ck))[1 - along]
-            g = slope[sub]
-            if float(np.abs(mk).max()) > 1e-6:  # (a disc's identity level has centroid 0: nothing)
-                if float(g.max() - g.min()) <= 1e-6 * max(float(np.abs(g).max()), 1e-6):
-                    kernels = [(k + np.float32(g.flat[0]) * mk, wsub)]  # a linear ramp: one pass, K + g M
+        g = None if slope is None else slope[sub]
+        sources = {}  # per pass weight (the level's, or times the slope): weight, alpha weight, weighted colour
+
+        def source(which):
+            if which not in sources:
+                wk = wsub if which == 0 else wsub * g
+                wa = np.broadcast_to(wk if one else wk * a_sub, (y1 - y0, x1 - x0))
+                src = np.empty((3, y1 - y0, x1 - x0), np.float32)
+                for ch in range(3):  # each channel read once, then weighted
+                    grab(rgb[:, :, ch], fy0, fy1, fx0, fx1, True, src[ch])
+                    src[ch] *= wa
+                sources[which] = wk, wa, src
+            return sources[which]
+
+        for aperture, col, a_acc, w_acc in zip(apertures, cols, a_accs, w_accs):
+            kk = kernel(aperture, float(ck))
+            passes = [(kk, 0)]
+            if g is not None:  # the Jacobian's first-order term: the p-moment kernel times the slope
+                mk = kernel_moments(aperture, float(ck))[1 - along]
+                if float(np.abs(mk).max()) > 1e-6:  # (a disc's identity level has centroid 0: nothing)
+                    if float(g.max() - g.min()) <= 1e-6 * max(float(np.abs(g).max()), 1e-6):
+                        passes = [(kk + np.float32(g.flat[0]) * mk, 0)]  # a linear ramp: one pass, K + g M
+                    else:
+                        passes.append((mk, 1))
+            for kp, which in passes:  # weight, alpha and colour of each pass
+                cv = Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=kp)
+                wk, wa, src = source(which)
+                if along == 0:
+                    add_clipped(w_acc, ty0, 0, np.convolve(wk[:, 0], cv.k.sum(axis=1))[:, None])
+                elif along == 1:
+                    add_clipped(w_acc, 0, tx0, np.convolve(wk[0], cv.k.sum(axis=0))[None, :])
                 else:
-                    kernels.append((mk, wsub * g))
-        passes = [(Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=kk), wk) for kk, wk in kernels]
-        for cv, wk in passes:  # weight, alpha and colour of each pass
-            if along == 0:
-                add_clipped(w_acc, ty0, 0, np.convolve(wk[:, 0], cv.k.sum(axis=1))[:, None])
-            elif along == 1:
-                add_clipped(w_acc, 0, tx0, np.convolve(wk[0], cv.k.sum(axis=0))[None, :])
-            else:
-                cv.add_into(copy_tile(wk), w_acc, ty0, tx0)
-            wa = np.broadcast_to(wk if one else wk * a_sub, (y1 - y0, x1 - x0))
-            if a_acc is not None:
-                cv.add_into(copy_tile(wa), a_acc, ty0, tx0)
-            for ch in range(3):  # each channel of the strip read straight into the FFT's buffer
-                def tile(a, b, c, d, out, ch=ch, wa=wa):
-                    grab(rgb[:, :, ch], fy0 + a, fy0 + b, fx0 + c, fx0 + d, True, out)
-                    out *= wa[a:b, c:d]
-                cv.add_into(tile, col[ch], ty0, tx0)
-    np.maximum(w_acc, 1e-12, out=w_acc)
-    inv = np.reciprocal(w_acc, out=w_acc)
-    if backmost:
-        col *= inv[None]
-        return
-    a_acc *= inv
-    inv = np.broadcast_to(inv, (oh, ow))
-    region = acc[:, oy0:oy1, ox0:ox1]
-    keep = 1.0 - a_acc
-    for ch in range(3):
-        col[ch] *= inv
-        region[ch] *= keep
-        region[ch] += col[ch]
+                    cv.add_into(copy_tile(wk), w_acc, ty0, tx0)
+                if a_acc is not None:
+                    cv.add_into(copy_tile(wa), a_acc, ty0, tx0)
+                cv.add_stack_into(src, col, ty0, tx0)
+    for acc, col, a_acc, w_acc in zip(accs, cols, a_accs, w_accs):
+        np.maximum(w_acc, 1e-12, out=w_acc)
+        inv = np.reciprocal(w_acc, out=w_acc)
+        if backmost:
+            col *= inv[None]
+            continue
+        a_acc *= inv
+        inv = np.broadcast_to(inv, (oh, ow))
+        region = acc[:, oy0:oy1, ox0:ox1]
+        keep = 1.0 - a_acc
+        for ch in range(3):
+            col[ch] *= inv
+            region[ch] *= keep
+            region[ch] += col[ch]
 
 
 def plane_box(plane, alpha: np.ndarray):
@@ -275,8 +288,15 @@ def render_layered(planes, focus: float, max_coc: float, aperture, options) -> n
     the premultiplied composite over black. `options`: a dofsynth.render.RenderOptions (its
     level_step and level_ratio; its `margin`: the planes go on that many px past the part of
     the result the caller keeps, which is then all that is computed: the rest stays 0)."""
+    return render_layered_each(planes, focus, max_coc, [aperture], options)[0]
+
+
+def render_layered_each(planes, focus: float, max_coc: float, apertures, options) -> list[np.ndarray]:
+    """`render_layered` of the same planes through each of `apertures` (the sub-aperture
+    method's cells): a plane with a disparity map shares its levels' weights and weighted
+    colours among them. The same values as one render per aperture."""
     H, W = planes[0].shape
-    acc = np.zeros((3, H, W), dtype=np.float32)  # planar: contiguous per-channel updates
+    accs = [np.zeros((3, H, W), dtype=np.float32) for _ in apertures]  # planar: contiguous per-channel updates
     for i, plane in enumerate(planes):
         backmost = i == 0
         alpha = np.asarray(plane.alpha, dtype=np.float32)
@@ -286,9 +306,10 @@ def render_layered(planes, focus: float, max_coc: float, aperture, options) -> n
             continue
         d = plane.constant_disparity()
         if d is not None:
-            _composite_constant(acc, rgb, alpha, box, coc_radius(d, focus, max_coc), aperture, backmost,
-                                options.margin)
+            for acc, aperture in zip(accs, apertures):
+                _composite_constant(acc, rgb, alpha, box, coc_radius(d, focus, max_coc), aperture, backmost,
+                                    options.margin)
         else:
-            _composite_varying(acc, rgb, alpha, plane.disparity_map(), box, max_coc, focus, aperture,
+            _composite_varying(accs, rgb, alpha, plane.disparity_map(), box, max_coc, focus, apertures,
                                backmost, options.level_step, options.level_ratio, options.margin)
-    return acc
+    return accs
