@@ -99,9 +99,9 @@ METHODS: dict[str, Method] = {
     "subaperture": Method(render_subaperture, "subaperture-v8", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
                           summary="the aperture cut into cells x cells parts, layered per part: shows what "
                                   "a blurred edge reveals behind it, about cells^2 x the cost"),
-    "adaptive": Method(render_adaptive, "adaptive-v3", ("level_step", "level_ratio", "margin"),
-                       summary="the layered render, with sub-aperture parts (two halves or 2 x 2 cells) only in the "
-                               "tiles where it errs: a blurred cutout's edge over a blurred plane that varies"),
+    "adaptive": Method(render_adaptive, "adaptive-v4", ("level_step", "level_ratio", "margin"),
+                       summary="the layered render, with 2 x 2 sub-aperture cells only in the tiles where it errs: "
+                               "a blurred cutout's edge over a blurred plane that varies"),
     "exact": Method(render_exact, "exact-v4", ("samples", "cat_eye", "margin"), uses_boxes=False,
                     summary="every aperture point warped and composited, averaged (slow, a reference)"),
 }
