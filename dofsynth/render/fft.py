@@ -195,10 +195,11 @@ def convolve_stack(x: np.ndarray, kernels: np.ndarray, pairs, valid: bool = Fals
     ((len(pairs), h - kh + 1, w - kw + 1), the window (kh - 1, h, kw - 1, w)). The circular
     FFT is only as large as the window needs (its outputs must not wrap onto the window:
     n >= max(input, full - y0, y1) per axis), so a window costs less than the full result.
-    Three batched float32 FFT calls whatever the count (the channels' transforms, the
-    kernels', the inverse of the products): for a few small channels, where the per-channel
-    `Convolver` spends most of its time around the transforms. Equal to direct convolution to
-    float32 rounding (tested)."""
+    The channels' transforms in one call, then the kernels' and each pair's product and inverse
+    one at a time (the batched inverse took 2.5x as long at 432 x 288: its arrays left the
+    cache, measured): for a few small channels, where the per-channel `Convolver` spends most
+    of its time around the transforms. Equal to direct convolution to float32 rounding
+    (tested)."""
     h, w = x.shape[1:]
     kh, kw = kernels.shape[1:]
     if valid:
@@ -207,12 +208,13 @@ def convolve_stack(x: np.ndarray, kernels: np.ndarray, pairs, valid: bool = Fals
     n0 = sfft.next_fast_len(max(h, h + kh - 1 - y0, y1), real=True)
     n1 = sfft.next_fast_len(max(w, w + kw - 1 - x0, x1), real=True)
     spec = sfft.rfft2(x, s=(n0, n1))
-    kspec = sfft.fft(sfft.rfft(kernels, n=n1, axis=-1), n=n0, axis=-2)  # = rfft2, without the zero rows' transforms
-    prod = np.empty((len(pairs),) + spec.shape[1:], spec.dtype)
-    for i, (k, c) in enumerate(pairs):  # (no gathered copies of the spectra)
-        np.multiply(kspec[k], spec[c], out=prod[i])
-    out = sfft.irfft2(prod, s=(n0, n1), overwrite_x=True)
-    return out[:, y0:y1, x0:x1]
+    kspec = [sfft.fft(sfft.rfft(k, n=n1, axis=-1), n=n0, axis=-2) for k in kernels]  # = rfft2, without the zero rows' transforms
+    out = np.empty((len(pairs), y1 - y0, x1 - x0), np.float32)
+    prod = np.empty(spec.shape[1:], spec.dtype)
+    for i, (k, c) in enumerate(pairs):  # one pair at a time: its product and inverse stay in cache
+        np.multiply(kspec[k], spec[c], out=prod)
+        out[i] = sfft.irfft2(prod, s=(n0, n1), overwrite_x=True)[y0:y1, x0:x1]
+    return out
 
 
 def copy_tile(a: np.ndarray):
