@@ -54,6 +54,7 @@ class AssetSources:
     alpha_dir: str = key("alpha")                    # ... their mattes in foregrounds/<alpha_dir>
     estimate_foreground: bool = key(True)            # paired layout: estimate the colour where 0 < alpha < 1
     estimate_space: str = key("srgb", choices=("srgb", "linear"))  # ... solving I = a F + (1 - a) B in sRGB codes or linear light
+    opaque_from: float = key(0.98, lo=0.5, hi=1.0)   # a photo's matte at least this opaque counts as opaque (1)
     max_upscale: float = key(1.0, lo=1.0, hi=64.0)   # most magnification of a background crop or a cutout
     transparent_background: str = key("bad", choices=("bad", "black", "grey", "white"))  # or flatten onto
 

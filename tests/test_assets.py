@@ -118,6 +118,32 @@ def test_paired_layout_with_shared_assets(write_recipe, shared_assets):
     assert (alpha[:, :x] == 0).all() and (alpha[y + h:, :] == 0).all()
 
 
+def test_a_real_mattes_near_opaque_interior_loads_opaque(write_recipe, shared_assets):
+    """rembg stops at codes 253-254 inside solid objects, which would let 0.4-0.8 % of the new
+    background through a face (visibly where the highlight boost brightens it): a matte at
+    least `assets.opaque_from` opaque loads as 1; softer values (hair, edges) stay as they are;
+    opaque_from = 1 keeps the matte as it is."""
+    codes = _read_codes(shared_assets / "alpha" / "rembg_girl-3.png")
+    inside = codes >= 250
+    assert ((codes == 253) | (codes == 254)).sum() > 0.5 * inside.sum()  # the matting network's interior
+    soft = (codes > 0) & (codes < 250)
+    for opaque_from, want in ((0.98, np.where(inside, 1.0, codes / 255.0)), (1.0, codes / 255.0)):
+        r = load_recipe(write_recipe(backgrounds=shared_assets / "bg", foregrounds=shared_assets,
+                                     replace={'verify = "decode"': f'verify = "decode"\nopaque_from = {opaque_from}'}))
+        lib = build_library(r)
+        _, alpha = lib.load_foreground(lib["fg/rembg_girl-3"])
+        np.testing.assert_allclose(alpha, want, atol=1e-6)
+        assert soft.any() and np.array_equal(alpha[soft], (codes[soft] / np.float32(255)).astype(np.float32))
+
+
+def _read_codes(path):
+    """A matte file's 8-bit codes (its first channel)."""
+    import cv2
+
+    a = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    return a[..., 0] if a.ndim == 3 else a
+
+
 def test_rgba_cutout_folder_made_from_shared_assets(write_recipe, shared_assets, tmp_path):
     cut = tmp_path / "cutouts"
     for name in ("rembg_girl-1", "pymatting_lemur"):
@@ -132,6 +158,7 @@ def test_rgba_cutout_folder_made_from_shared_assets(write_recipe, shared_assets,
     girl = lib["fg/rembg_girl-1"]
     _, alpha = lib.load_foreground(girl)
     ref = read_image(shared_assets / "alpha" / "rembg_girl-1.png")[:, :, 0]
+    ref = np.where(ref >= np.float32(0.98), np.float32(1.0), ref)  # assets.opaque_from
     assert np.array_equal(alpha, ref) and girl.alpha_path is None
 
 
@@ -388,7 +415,8 @@ def test_8bit_loads_use_the_exact_table_and_the_cache_is_bounded(write_recipe, s
     car = lib["fg/rembg_car-2"]
     rgb, alpha = lib.load_foreground(car)
     a8 = cv2.imread(str(shared_assets / "alpha" / "rembg_car-2.png"), cv2.IMREAD_UNCHANGED)
-    np.testing.assert_array_equal(alpha, (a8 if a8.ndim == 2 else a8[..., -1]).astype(np.float32) / 255.0)
+    a = (a8 if a8.ndim == 2 else a8[..., -1]).astype(np.float32) / 255.0
+    np.testing.assert_array_equal(alpha, np.where(a >= np.float32(0.98), np.float32(1.0), a))  # assets.opaque_from
     assert lib.load_background(bg) is img  # cached
     small = AssetLibrary(lib.backgrounds, lib.foregrounds, {a.id: lib.splits[a.id] for a in (*lib.backgrounds, *lib.foregrounds)},
                          cache_bytes=img.nbytes - 1)
