@@ -18,12 +18,13 @@ from dofsynth.image import to_uint8
 from dofsynth.io import DEPTH_CHANNELS, PngSettings, decode_exr, encode_exr, encode_png_rgb
 from dofsynth.optics.coc import coc_radius
 
-SCHEMA_VERSION = 5  # 2: assets' colour; objects' anchored, visible and rejected;
+SCHEMA_VERSION = 6  # 2: assets' colour; objects' anchored, visible and rejected;
 #                    3: depth.exr channel "disparity" (was "Z") with attributes; sRGB chunks;
 #                    4: every field one JSON type in every record (record.schema.json): anchored,
 #                       rejected and excluded joined strings, a flat background's direction "none";
 #                       dual-pixel views add up to the target, which no longer changes with them;
 #                    5: targets blur what the photo holds past the frame edge: background margin, real
+#                    6: assets' matte: a photo's near-opaque matte loads as opaque (assets.opaque_from)
 # zlib settings of the PNG members, chosen by measurement at 1024 px (docs/rendering.md):
 # - images (aif, dof): level 1, one fixed Paeth row filter, Huffman-only coding. libpng no longer
 #   tries all five filters per row, and Paeth residuals of photos have few long matches, so

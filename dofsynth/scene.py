@@ -45,6 +45,7 @@ class AssetRef:
     path: str      # relative to the recipe's folder (portable), or "builtin:..."
     sha256: str
     colour: str = "file"  # "file": the file's colour as it is; "estimated:<estimator>" (dofsynth.assets.foreground)
+    matte: str = "file"   # "file": its alpha as it is; "opaque_from:<v>": values >= v loaded as 1 (assets.opaque_from)
 
 
 @dataclass(frozen=True)
@@ -152,7 +153,7 @@ def _ref(asset: Asset, recipe: Recipe, library: AssetLibrary) -> AssetRef:
     path = asset.path
     if not path.startswith("builtin:") and recipe.base_dir:
         path = os.path.relpath(path, recipe.base_dir).replace(os.sep, "/")
-    return AssetRef(id=asset.id, path=path, sha256=asset.sha256, colour=library.colour(asset))
+    return AssetRef(id=asset.id, path=path, sha256=asset.sha256, colour=library.colour(asset), matte=library.matte(asset))
 
 
 _VISIBLE_TRIES = 32  # object draws for both to stay visible (a new middle object every 8)

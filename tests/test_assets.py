@@ -133,6 +133,8 @@ def test_a_real_mattes_near_opaque_interior_loads_opaque(write_recipe, shared_as
         lib = build_library(r)
         _, alpha = lib.load_foreground(lib["fg/rembg_girl-3"])
         np.testing.assert_allclose(alpha, want, atol=1e-6)
+        assert lib.matte(lib["fg/rembg_girl-3"]) == ("file" if opaque_from == 1.0 else "opaque_from:0.98")  # as records say
+        assert lib.matte(lib["bg/kodak_kodim01"]) == "file"
         assert soft.any() and np.array_equal(alpha[soft], (codes[soft] / np.float32(255)).astype(np.float32))
 
 

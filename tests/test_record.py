@@ -42,7 +42,7 @@ def test_members_and_record(setup):
         n = len(scene.targets)
         assert set(m) == {"aif.png", "depth.exr", "cover.png", "json"} | {f"dof.{i}.png" for i in range(n)}
         rec = json.loads(m["json"])
-        assert rec["schema_version"] == SCHEMA_VERSION == 5 and rec["renderer"] == METHODS["layered"].renderer_id and rec["dofsynth_version"] == "0.1.0"
+        assert rec["schema_version"] == SCHEMA_VERSION == 6 and rec["renderer"] == METHODS["layered"].renderer_id and rec["dofsynth_version"] == "0.1.0"
         assert rec["key"] == scene.key and list(rec) == sorted(rec)
         assert {k: v for k, v in rec.items() if k not in ("schema_version", "renderer", "dofsynth_version")} == \
             json.loads(json.dumps(scene.to_dict()))
@@ -160,7 +160,7 @@ def test_image_members_say_srgb_and_the_depth_member_says_what_it_is(setup):
     assert list(f.channels()) == ["disparity"]                # not "Z": that means distance
     header = f.header()
     assert header["dofsynth:quantity"] == "normalized disparity"
-    assert "1 = nearest" in header["dofsynth:convention"] and header["dofsynth:schema_version"] == "5"
+    assert "1 = nearest" in header["dofsynth:convention"] and header["dofsynth:schema_version"] == "6"
 
 
 def test_shards_of_older_schemas_still_decode(setup):

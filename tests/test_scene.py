@@ -65,8 +65,8 @@ def test_record_fields_match_the_format(many):
                       "targets", "aperture", "options", "excluded"}
     assert d["excluded"] == "" and isinstance(d["front"]["anchored"], str) and isinstance(d["front"]["rejected"], str)
     assert set(d["assets"]) == {"background", "front", "middle"}
-    assert set(d["assets"]["front"]) == {"id", "path", "sha256", "colour"}
-    assert d["assets"]["front"]["colour"] == "file"  # built-in cutouts: their own colour
+    assert set(d["assets"]["front"]) == {"id", "path", "sha256", "colour", "matte"}
+    assert d["assets"]["front"]["colour"] == d["assets"]["front"]["matte"] == "file"  # built-in cutouts: their own colour and alpha
     assert set(d["background"]) == {"mode", "b0", "b1", "direction", "crop", "flip", "margin", "real"}
     assert d["background"]["margin"] > 0 and len(d["background"]["real"]) == 4
     assert set(d["front"]) == {"disparity", "scale", "x", "y", "flip", "anchored", "visible", "rejected"}

@@ -254,9 +254,10 @@ def test_schema_errors_are_named(smoke_set):
     assert "size: [64] is too short" in errs
     assert any(e.startswith("background.mode: 'sky' is not one of") for e in errs)
     older = json.loads(json.dumps(rec))   # a record of an older schema: one line that says so
-    older["schema_version"] = 4
-    del older["background"]["margin"], older["background"]["real"]
-    assert check_record_schema(older) == ["schema_version 4: made by an older dofsynth; this one checks schema 5 "
+    older["schema_version"] = 5
+    for k in ("background", "front", "middle"):
+        del older["assets"][k]["matte"]
+    assert check_record_schema(older) == ["schema_version 5: made by an older dofsynth; this one checks schema 6 "
                                           "(docs/FORMAT.md says what changed; such records still read and re-render)"]
     typed = json.loads(json.dumps(rec))   # schema 4: one JSON type per field, whatever the sample
     typed["front"]["anchored"] = ["bottom"]

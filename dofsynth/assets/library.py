@@ -109,6 +109,13 @@ class AssetLibrary:
             return f"estimated:{estimator_id(self.rules.estimate_space)}"
         return "file"
 
+    def matte(self, asset: Asset) -> str:
+        """How the loaders' alpha of `asset` relates to its file, as its sample records say:
+        "file", or "opaque_from:<v>" (a photo's matte, values >= v loaded as 1)."""
+        if asset.kind == "background" or asset.path.startswith("builtin:") or self.rules.opaque_from >= 1.0:
+            return "file"
+        return f"opaque_from:{self.rules.opaque_from:g}"
+
     def __getitem__(self, asset_id: str) -> Asset:
         try:
             return self._by_id[asset_id]
@@ -209,7 +216,7 @@ class AssetLibrary:
         alpha = unit_alpha(alpha)
         alpha_bbox(alpha, name)
         alpha = np.clip(alpha, 0.0, 1.0).astype(np.float32)
-        alpha[alpha >= np.float32(self.rules.opaque_from)] = 1.0  # matting networks stop a few codes short of 255
+        alpha[alpha >= np.float32(self.rules.opaque_from)] = 1.0  # matting networks stop a few codes short of 255 (`matte`)
         if not whole:
             raw, alpha = raw[y:y + h, x:x + w], np.ascontiguousarray(alpha[y:y + h, x:x + w])
         rgb = colour_linear(raw, asset.path)
