@@ -374,6 +374,50 @@ def test_the_convolver_equals_a_float64_direct_convolution_tiled_or_not(tiling, 
         np.testing.assert_allclose(dst, want, atol=2e-6)
 
 
+@pytest.mark.parametrize("radius,ap", [(3.2, Disk()), (0.0, Disk()), (-13.3, Disk()), (4.6, "cell")])  # direct, 1x1, FFT
+def test_add_stack_into_is_add_into_channel_by_channel(radius, ap):
+    """Convolver.add_stack_into (small kernels: the channels stacked in one cv2.filter2D call,
+    each in its own zero-padded block) gives each channel's add_into, byte for byte."""
+    from dofsynth.render.subaperture import Cell
+
+    ap = Cell(Disk(), 0.0, 1.0, -1.0, 0.0) if ap == "cell" else ap
+    g = rng(12)
+    x = g.random((3, 41, 57), dtype=np.float32)
+    conv = Convolver(radius, ap, 41, 57)
+    base = g.random((3, 50, 70), dtype=np.float32)
+    for oy, ox in ((0, 0), (-6, 9), (20, -30)):
+        want, got = base.copy(), base.copy()
+        for c in range(3):
+            conv.add_into(lambda y0, y1, x0, x1, out, c=c: np.copyto(out, x[c, y0:y1, x0:x1]), want[c], oy, ox)
+        conv.add_stack_into(x, got, oy, ox)
+        np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(got, base)
+
+
+def test_render_layered_each_is_one_render_per_aperture():
+    """layered.render_layered_each (a disparity map's levels, weights and weighted colours
+    shared among the apertures: the sub-aperture cells of a ramp) gives each aperture's own
+    render_layered, byte for byte: a ramp background and a cutout with a disparity map."""
+    from dofsynth.render import RenderOptions
+    from dofsynth.render.layered import render_layered, render_layered_each
+    from dofsynth.render.subaperture import cells
+
+    g = rng(8)
+    n = 72
+    ramp = np.broadcast_to(np.linspace(0.1, 0.5, n, dtype=np.float32)[:, None], (n, n))
+    alpha = np.zeros((n, n), np.float32)
+    alpha[20:50, 15:60] = 1.0
+    tilt = np.broadcast_to(np.linspace(0.6, 0.8, n, dtype=np.float32)[None, :], (n, n))
+    planes = [Plane(g.random((n, n, 3), dtype=np.float32), np.ones((n, n), np.float32), ramp),
+              Plane(g.random((n, n, 3), dtype=np.float32), alpha, tilt)]
+    apertures = [cell for cell, _ in cells(Disk(), 2)] + [Polygon(6, 15.0)]
+    for options in (RenderOptions(), RenderOptions(margin=12)):
+        each = render_layered_each(planes, 0.3, 10.0, apertures, options)
+        for ap, got in zip(apertures, each):
+            np.testing.assert_array_equal(got, render_layered(planes, 0.3, 10.0, ap, options))
+    assert not np.array_equal(each[0], each[1])
+
+
 def test_convolve_stack_equals_float64_direct_convolutions_full_and_valid():
     """fft.convolve_stack: each (kernel, channel) pair's full convolution, only its valid
     part (every tap inside the input), or a window of it, by one batched FFT."""

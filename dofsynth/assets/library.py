@@ -216,7 +216,7 @@ class AssetLibrary:
         alpha = unit_alpha(alpha)
         alpha_bbox(alpha, name)
         alpha = np.clip(alpha, 0.0, 1.0).astype(np.float32)
-        alpha[alpha >= np.float32(self.rules.opaque_from)] = 1.0  # matting networks stop a few codes short of 255 (`matte`)
+        alpha[alpha >= np.float32(self.rules.opaque_from)] = 1.0  # matting networks stop short of 255 (`matte`)
         if not whole:
             raw, alpha = raw[y:y + h, x:x + w], np.ascontiguousarray(alpha[y:y + h, x:x + w])
         rgb = colour_linear(raw, asset.path)

@@ -29,7 +29,7 @@ from dofsynth.render.subaperture import cells, coc_reach, compact_disparity, cut
 
 TILE = 32           # px: the grid on which the cells are placed
 RECT_COST = 4.0     # tiles: the cost of one more rendered rectangle, in tiles' area (`rectangles`)
-MIN_SCORE = 3e-4    # tiles whose error bound (`error_scores`: a mean square, linear light) is lower keep the layered result
+MIN_SCORE = 3e-4    # tiles whose bound (`error_scores`: a mean square, linear light) is lower stay layered
 MIN_DIFFERENCE = 0.5  # px: a cutout and a plane behind it whose CoCs differ less count as alike
 READ = 4            # px: the tiles' statistics are read on every READ-th pixel of every READ-th row
 
@@ -60,8 +60,8 @@ def _variance_over(x: np.ndarray, c) -> np.ndarray:
     """The variance of a lattice map x (`_lattice`) over a disc of radius |c| px about each of
     its points (c: a number, or a map of x's shape), read with a box of about the disc's area
     (at least 3 x 3 lattice points where |c| >= 0.5 px: a blur finer than the lattice is
-    counted as one of 3 x 3); 0 where |c| < 0.5 px. A varying c is taken on CoC levels 1.5x
-    apart, each point from its nearest."""
+    counted as one of 3 x 3); 0 where |c| < 0.5 px. A varying c is taken on box sides about
+    1.5x apart, each point from its nearest."""
     c = np.abs(np.asarray(c, np.float32))
     out = np.zeros(x.shape, np.float32)
     if float(c.max()) < 0.5:
