@@ -418,6 +418,20 @@ def test_render_layered_each_is_one_render_per_aperture():
     assert not np.array_equal(each[0], each[1])
 
 
+def test_convolve_stack_gives_the_same_bytes_however_its_transforms_are_grouped(monkeypatch):
+    """convolve_stack batches its kernels' transforms and its inverses while their spectra stay
+    small (STACK_GROUP_BYTES) and goes one at a time beyond: the same bytes either way."""
+    import dofsynth.render.fft as F
+
+    g = rng(6)
+    x = g.random((4, 45, 61), dtype=np.float32)
+    ks = g.random((5, 11, 9), dtype=np.float32)
+    pairs = [(k, c) for k in range(5) for c in range(4)][:15]
+    grouped = F.convolve_stack(x, ks, pairs, window=(3, 50, 2, 60))
+    monkeypatch.setattr(F, "STACK_GROUP_BYTES", 0)
+    np.testing.assert_array_equal(F.convolve_stack(x, ks, pairs, window=(3, 50, 2, 60)), grouped)
+
+
 def test_convolve_stack_equals_float64_direct_convolutions_full_and_valid():
     """fft.convolve_stack: each (kernel, channel) pair's full convolution, only its valid
     part (every tap inside the input), or a window of it, by one batched FFT."""

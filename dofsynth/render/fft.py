@@ -196,11 +196,13 @@ def convolve_stack(x: np.ndarray, kernels: np.ndarray, pairs, valid: bool = Fals
     ((len(pairs), h - kh + 1, w - kw + 1), the window (kh - 1, h, kw - 1, w)). The circular
     FFT is only as large as the window needs (its outputs must not wrap onto the window:
     n >= max(input, full - y0, y1) per axis), so a window costs less than the full result.
-    The channels' transforms in one call, then the kernels' one at a time, and the pairs'
-    products and inverses a few at a time (up to 4 within STACK_GROUP_BYTES: 8-16 % faster
-    than one at a time at 120 x 192 to 432 x 288, where all 24 at once took 2.5x as long, its
-    arrays leaving the cache; measured): for a few small channels, where the per-channel `Convolver` spends most
-    of its time around the transforms. Equal to direct convolution to float32 rounding
+    For a few small channels, where the per-channel `Convolver` spends most of its time around
+    the transforms. The channels' transforms in one call; the kernels' in one call up to
+    2 STACK_GROUP_BYTES of spectra, else one at a time; the pairs' products and inverses up to
+    4 per call within STACK_GROUP_BYTES. All at once is fastest while the arrays stay in the
+    cache, one at a time beyond (measured from 120 x 192 to 432 x 288: 24 inverses at once took
+    2.5x as long as one by one and 4 at a time 8-16 % less; 13 kernels at once half the time
+    up to 225 x 320, 1.2x at 432 x 288). Equal to direct convolution to float32 rounding
     (tested)."""
     h, w = x.shape[1:]
     kh, kw = kernels.shape[1:]
@@ -210,7 +212,10 @@ def convolve_stack(x: np.ndarray, kernels: np.ndarray, pairs, valid: bool = Fals
     n0 = sfft.next_fast_len(max(h, h + kh - 1 - y0, y1), real=True)
     n1 = sfft.next_fast_len(max(w, w + kw - 1 - x0, x1), real=True)
     spec = sfft.rfft2(x, s=(n0, n1))
-    kspec = [sfft.fft(sfft.rfft(k, n=n1, axis=-1), n=n0, axis=-2) for k in kernels]  # = rfft2, without the zero rows' transforms
+    if len(kernels) * spec[0].nbytes <= 2 * STACK_GROUP_BYTES:  # = rfft2, without the zero rows' transforms
+        kspec = sfft.fft(sfft.rfft(kernels, n=n1, axis=-1), n=n0, axis=-2)
+    else:  # large: one at a time (the batch leaves the cache)
+        kspec = [sfft.fft(sfft.rfft(k, n=n1, axis=-1), n=n0, axis=-2) for k in kernels]
     out = np.empty((len(pairs), y1 - y0, x1 - x0), np.float32)
     group = int(np.clip(STACK_GROUP_BYTES // max(spec[0].nbytes, 1), 1, 4))  # pairs per inverse call
     prod = np.empty((group,) + spec.shape[1:], spec.dtype)
