@@ -276,6 +276,25 @@ def real_scenes(size: int = 1024, count: int = 3, coc: float = 32.0):
     return out
 
 
+def reference_path(reference_dir, planes, scene: str, size: int, coc: float, focus: float):
+    """Where `real_method_table` keeps an exact render (None without a folder): named by the
+    exact mode's renderer id, the scene, size, max CoC, focus and a digest of the planes'
+    contents (a change in how assets load, a matte or a crop, makes a new reference)."""
+    import hashlib
+    from pathlib import Path
+
+    from dofsynth.render import METHODS
+
+    if not reference_dir:
+        return None
+    digest = hashlib.sha1()
+    for p in planes:
+        for a in (p.rgb, p.alpha, p.disparity):
+            digest.update(np.ascontiguousarray(np.asarray(a, np.float32)).tobytes())
+    key = f"exact-{METHODS['exact'].renderer_id}-{scene.split()[0]}-{size}-{coc:g}-{focus:.4f}-{digest.hexdigest()[:12]}.npy"
+    return Path(reference_dir) / key
+
+
 def real_method_table(size: int, count: int, coc: float, methods, repeat: int = 5, reference_dir=None) -> None:
     """PSNR (dB, over the frame) of `methods` (names of METHODS, or "subaperture:N" for N x N
     cells) against the exact mode on `real_scenes`: of the render (linear light, highlights
@@ -284,7 +303,6 @@ def real_method_table(size: int, count: int, coc: float, methods, repeat: int = 
     renders, interleaved, each with its own focus jitter (1e-4 steps) so no kernel comes from
     the cache (as in generation); the spread (min-max) beside it. Exact renders are kept in
     `reference_dir` when given (they take minutes each)."""
-    from pathlib import Path
 
     from dofsynth.render import METHODS
     from dofsynth.render.look import restore
@@ -314,8 +332,7 @@ def real_method_table(size: int, count: int, coc: float, methods, repeat: int = 
         frame = (slice(None), slice(m, H - m), slice(m, W - m))
         for focus in focuses:
             ref = None
-            key = f"exact-{METHODS['exact'].renderer_id}-{scene.split()[0]}-{size}-{coc:g}-{focus:.4f}.npy"
-            path = Path(reference_dir) / key if reference_dir else None
+            path = reference_path(reference_dir, planes, scene, size, coc, focus)
             if path is not None and path.exists():
                 ref = np.load(path)
             if ref is None:
