@@ -32,8 +32,9 @@ def _cell_kernels(cell: Aperture, c: float) -> tuple[np.ndarray, tuple[int, int,
     of a shape that is its own mirror image (`Aperture.mirrored`) lying left of (or above) the
     centre is its mirror cell's kernels flipped (the moment across the flip negated): one of
     the four 2 x 2 cells (one of two halves) is computed, the others equal it to rounding."""
-    flip_x = cell.base.mirrored and cell.x1 <= 0.0
-    flip_y = cell.base.mirrored and cell.y1 <= 0.0
+    mirrored = getattr(getattr(cell, "base", None), "mirrored", False) and hasattr(cell, "x1")  # a grid cell of one
+    flip_x = mirrored and cell.x1 <= 0.0
+    flip_y = mirrored and cell.y1 <= 0.0
     if flip_x or flip_y:
         mirror = replace(cell, **({"x0": -cell.x1, "x1": -cell.x0} if flip_x else {}),
                          **({"y0": -cell.y1, "y1": -cell.y0} if flip_y else {}))
