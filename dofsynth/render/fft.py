@@ -89,19 +89,28 @@ class Convolver:
             self.n1 = sfft.next_fast_len(self.tx + self.ew, real=True)
             self.spec = _kernel_spectrum(k, self.n0, self.n1)
 
-    def _direct(self, tile, i0: int, i1: int, j0: int, j1: int) -> np.ndarray:
-        """Full convolution of input[i0:i1, j0:j1] by cv2.filter2D (small kernels); the block
-        is written straight into the middle of its zero-padded buffer."""
+    def _filtered(self, pad: np.ndarray) -> np.ndarray:
+        """The full convolutions (C, h + eh, w + ew) of a stack of blocks, each in the middle of
+        its zero-padded buffer (C, h + 2 eh, w + 2 ew), by one cv2.filter2D over the buffers
+        stacked (the kernel reaches no other buffer); small kernels only."""
         eh, ew = self.eh, self.ew
-        pad = np.zeros((i1 - i0 + 2 * eh, j1 - j0 + 2 * ew), np.float32)
-        tile(i0, i1, j0, j1, pad[eh : eh + i1 - i0, ew : ew + j1 - j0])
         if not (eh or ew):  # a 1 x 1 kernel: the identity, or a scale (a moment kernel at radius 0)
             if self.used[0, 0] != 1.0:
                 pad *= self.used[0, 0]
             return pad
+        C, hp, wp = pad.shape
         ay, ax = eh // 2, ew // 2
-        out = cv2.filter2D(pad, -1, self.flipped, anchor=(ax, ay), borderType=cv2.BORDER_CONSTANT)
-        return out[ay : ay + i1 - i0 + eh, ax : ax + j1 - j0 + ew]
+        out = cv2.filter2D(pad.reshape(C * hp, wp), -1, self.flipped, anchor=(ax, ay),
+                           borderType=cv2.BORDER_CONSTANT).reshape(pad.shape)
+        return out[:, ay : ay + hp - eh, ax : ax + wp - ew]
+
+    def _direct(self, tile, i0: int, i1: int, j0: int, j1: int) -> np.ndarray:
+        """Full convolution of input[i0:i1, j0:j1] by cv2.filter2D (small kernels); the block
+        is written straight into the middle of its zero-padded buffer."""
+        eh, ew = self.eh, self.ew
+        pad = np.zeros((1, i1 - i0 + 2 * eh, j1 - j0 + 2 * ew), np.float32)
+        tile(i0, i1, j0, j1, pad[0, eh : eh + i1 - i0, ew : ew + j1 - j0])
+        return self._filtered(pad)[0]
 
     def add_into(self, tile, dst: np.ndarray, oy: int, ox: int) -> None:
         """dst[oy + p, ox + q] += full[p, q] where it lies inside dst; the input comes from
@@ -123,9 +132,9 @@ class Convolver:
 
     def add_stack_into(self, src: np.ndarray, dst: np.ndarray, oy: int, ox: int) -> None:
         """`add_into` for each channel of src (C, h, w) into dst (C, H, W). Small kernels: one
-        cv2.filter2D over the channels stacked in one buffer, each in its own zero-padded block
-        (the kernel reaches no other block), the same values as channel by channel."""
-        if not self.direct or not (self.eh or self.ew):
+        cv2.filter2D over the channels stacked (`_filtered`), the same values as channel by
+        channel."""
+        if not self.direct:
             for c in range(src.shape[0]):
                 self.add_into(copy_tile(src[c]), dst[c], oy, ox)
             return
@@ -133,10 +142,7 @@ class Convolver:
         eh, ew = self.eh, self.ew
         pad = np.zeros((C, h + 2 * eh, w + 2 * ew), np.float32)
         pad[:, eh : eh + h, ew : ew + w] = src
-        ay, ax = eh // 2, ew // 2
-        out = cv2.filter2D(pad.reshape(C * (h + 2 * eh), w + 2 * ew), -1, self.flipped, anchor=(ax, ay),
-                           borderType=cv2.BORDER_CONSTANT).reshape(pad.shape)
-        add_clipped(dst, oy + self.ky0, ox + self.kx0, out[:, ay : ay + h + eh, ax : ax + w + ew])
+        add_clipped(dst, oy + self.ky0, ox + self.kx0, self._filtered(pad))
 
     def _add_bands(self, tile, dst, oy, ox, rows, width, skip, j0, j1) -> None:
         """One column tile by FFT: for each band (p0, p1, i0, i1) of `rows`, output rows p0 .. p1

@@ -168,9 +168,10 @@ def render_cells(planes, focus: float, max_coc: float, parts, options, inner: in
     each cell's image weighted by its share and added: linear RGB (3, H, W). Each plane is
     blurred by every cell's kernel (constant-disparity planes in one batch: cellblur's
     `back_cells`, `cutout_cells`), then per cell composited (`_composite`): what makes few
-    cells accurate where a blurred edge occludes a blurred background. `inner` > 0: the planes go on that
-    many px past the part computed (rows and columns inner .. -inner; the rest stays 0), at
-    least every plane's kernel support radius; its outermost pixels take one-sided gradients."""
+    cells accurate where a blurred edge occludes a blurred background. `inner` > 0: the planes
+    go on that many px past the part computed (rows and columns inner .. -inner; the rest stays
+    0), at least every plane's kernel support radius; its outermost pixels take one-sided
+    gradients."""
     H, W = planes[0].shape
     m = inner
     back = planes[0]
