@@ -23,6 +23,7 @@ schedule, which always runs to train.max_steps. A config other than the stored o
 from __future__ import annotations
 
 import csv
+import gc
 import math
 import os
 import sys
@@ -331,7 +332,11 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
         log_file.close()
         if tb is not None:
             tb.close()
-    if ddp:
+    if ddp:  # leave the group while the interpreter is whole: first the DDP wrapper, whose reducer
+        #      holds the group and its last gloo work (freed during interpreter shutdown, that work
+        #      would take the GIL from a gloo thread and abort the process), then all ranks at once
+        model = batches = None
+        gc.collect()
         dist.barrier()
         dist.destroy_process_group()
     return {"step": step, "loss": loss_value, "val_loss": row.get("val_loss"), "best_score": best}
