@@ -176,14 +176,15 @@ def test_rectangles_follow_the_greedy_rule_on_random_maps():
 
 
 def test_batched_cells_equal_cell_by_cell(monkeypatch):
-    """Constant-disparity planes are blurred for all cells in one batch; above BATCH_MAX they
-    go cell by cell: the same render to float32 rounding."""
+    """Constant-disparity planes whose cell kernels take the FFT are blurred for all cells in
+    one batch; above BATCH_MAX they go cell by cell: the same render to float32 rounding (max
+    CoC 24: the bar's CoC of 13 px takes the FFT, the others' cells go direct either way)."""
     import dofsynth.render.cellblur as sub
 
     planes = _scene(96)
-    want = render_planes(planes, 0.35, 10.0, Disk(), method="subaperture", cells=2)
+    want = render_planes(planes, 0.35, 24.0, Disk(), method="subaperture", cells=2)
     monkeypatch.setattr(sub, "BATCH_MAX", 0)
-    got = render_planes(planes, 0.35, 10.0, Disk(), method="subaperture", cells=2)
+    got = render_planes(planes, 0.35, 24.0, Disk(), method="subaperture", cells=2)
     np.testing.assert_allclose(got, want, atol=2e-6)
     assert not np.array_equal(got, want)  # the other path did run
 

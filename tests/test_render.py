@@ -425,7 +425,7 @@ def test_convolve_stack_gives_the_same_bytes_however_its_transforms_are_grouped(
 
     g = rng(6)
     x = g.random((4, 45, 61), dtype=np.float32)
-    ks = g.random((5, 11, 9), dtype=np.float32)
+    ks = g.random((5, 13, 9), dtype=np.float32)  # (past 11 x 11: the FFT path)
     pairs = [(k, c) for k in range(5) for c in range(4)][:15]
     grouped = F.convolve_stack(x, ks, pairs, window=(3, 50, 2, 60))
     monkeypatch.setattr(F, "STACK_GROUP_BYTES", 0)
@@ -434,28 +434,32 @@ def test_convolve_stack_gives_the_same_bytes_however_its_transforms_are_grouped(
 
 def test_convolve_stack_equals_float64_direct_convolutions_full_and_valid():
     """fft.convolve_stack: each (kernel, channel) pair's full convolution, only its valid
-    part (every tap inside the input), or a window of it, by one batched FFT."""
+    part (every tap inside the input), or a window of it: kernels past 11 x 11 by one batched
+    FFT, smaller ones directly (cv2.filter2D, each kernel over its channels stacked)."""
     from scipy.signal import convolve2d
 
     from dofsynth.render.fft import convolve_stack
 
     g = rng(5)
     x = g.random((3, 37, 52), dtype=np.float32)
-    ks = g.random((2, 9, 14), dtype=np.float32)
     pairs = [(0, 0), (1, 2), (0, 2), (1, 1)]
-    for valid in (False, True):
-        got = convolve_stack(x, ks, pairs, valid=valid)
-        want = [convolve2d(x[c].astype(np.float64), ks[k].astype(np.float64), mode="valid" if valid else "full")
-                for k, c in pairs]
-        assert got.dtype == np.float32 and got.shape == (4,) + want[0].shape
-        np.testing.assert_allclose(got, np.stack(want), atol=2e-5)
-    full = np.stack([convolve2d(x[c].astype(np.float64), ks[k].astype(np.float64)) for k, c in pairs])
-    # windows of the full result: its start, its middle, its end, a single row (the FFT is smaller, nothing wraps in)
-    for win in ((0, 10, 0, 65), (8, 37, 13, 52), (20, 45, 40, 65), (44, 45, 0, 3)):
-        got = convolve_stack(x, ks, pairs, window=win)
-        y0, y1, x0, x1 = win
-        assert got.shape == (4, y1 - y0, x1 - x0)
-        np.testing.assert_allclose(got, full[:, y0:y1, x0:x1], atol=2e-5)
+    for shape in ((2, 9, 14), (2, 7, 4)):  # FFT, direct
+        ks = g.random(shape, dtype=np.float32)
+        kh, kw = shape[1:]
+        for valid in (False, True):
+            got = convolve_stack(x, ks, pairs, valid=valid)
+            want = [convolve2d(x[c].astype(np.float64), ks[k].astype(np.float64), mode="valid" if valid else "full")
+                    for k, c in pairs]
+            assert got.dtype == np.float32 and got.shape == (4,) + want[0].shape
+            np.testing.assert_allclose(got, np.stack(want), atol=2e-5)
+        full = np.stack([convolve2d(x[c].astype(np.float64), ks[k].astype(np.float64)) for k, c in pairs])
+        # windows of the full result: its start, its middle, its end, a single row (the FFT is smaller, nothing wraps in)
+        H, W = 37 + kh - 1, 52 + kw - 1
+        for win in ((0, 10, 0, W), (8, 37, 13, 52), (20, H, 40, W), (H - 1, H, 0, 3)):
+            got = convolve_stack(x, ks, pairs, window=win)
+            y0, y1, x0, x1 = win
+            assert got.shape == (4, y1 - y0, x1 - x0)
+            np.testing.assert_allclose(got, full[:, y0:y1, x0:x1], atol=2e-5)
 
 
 def test_convolve_equals_a_zero_padded_direct_convolution():

@@ -18,7 +18,7 @@ import numpy as np
 from dofsynth.optics.aperture import Aperture
 from dofsynth.optics.coc import coc_radius
 from dofsynth.optics.kernel import kernel, kernel_moments, support_radius
-from dofsynth.render.fft import Convolver, convolve_stack, copy_tile, stack_fits, trim_box, trimmed
+from dofsynth.render.fft import Convolver, convolve_stack, copy_tile, is_small, stack_fits, trim_box, trimmed
 from dofsynth.render.frame import grab, is_one
 from dofsynth.render.layered import cutout_regions, render_layered_each
 from dofsynth.render.planes import Plane
@@ -179,7 +179,7 @@ def back_cells(back, focus: float, max_coc: float, parts, options, H: int, W: in
     h, w = H - 2 * m + 2 * s, W - 2 * m + 2 * s  # what they read
     if c is None:  # a disparity map: the layered scatter, each level's work shared by the cells
         return _layered_inside([back], focus, max_coc, [cell for cell, _ in parts], options, m)
-    if s == 0 or K == 1 or 3 * K * h * w > BATCH_MAX or not stack_fits(h, w, 1, 1):
+    if s == 0 or K == 1 or 3 * K * h * w > BATCH_MAX or not stack_fits(h, w, 1, 1) or _direct(parts, c):
         return [_blur_back(back, focus, max_coc, cell, options, H, W, m) for cell, _ in parts]
     src = _back_source(back, (m - s, H - m + s, m - s, W - m + s))
     ks = _full_kernels(parts, c)[0::3]
@@ -207,7 +207,8 @@ def cutout_cells(plane, box, focus: float, max_coc: float, parts, options, H: in
     K = len(parts)
     g, o = cutout_reach(box, s, H, W, m)
     h, w = g[1] - g[0], g[3] - g[2]
-    if s == 0 or K == 1 or 6 * K * (h + 2 * s) * (w + 2 * s) > BATCH_MAX or not stack_fits(h, w, 2 * s + 1, 2 * s + 1):
+    if (s == 0 or K == 1 or 6 * K * (h + 2 * s) * (w + 2 * s) > BATCH_MAX or not stack_fits(h, w, 2 * s + 1, 2 * s + 1)
+            or _direct(parts, c)):
         return [(*_blur_cutout(plane, box, c, cell, H, W, m), c) for cell, _ in parts], None
     out = np.zeros((K, 6, o[1] - o[0], o[3] - o[2]), np.float32)
     ks = _full_kernels(parts, c)
@@ -226,6 +227,13 @@ def cutout_cells(plane, box, focus: float, max_coc: float, parts, options, H: in
 
 
 BATCH_MAX = 1 << 26  # float32 values a batched blur of one plane for all cells may hold (256 MiB)
+
+
+def _direct(parts, c: float) -> bool:
+    """Whether every cell's kernels of CoC c, cut to their non-zero box, are convolved directly
+    (`fft.is_small`): then each cell goes on its own (its kernels are smaller than the batch's
+    common (2S+1)^2 array, and direct convolution costs by the kernel's area)."""
+    return all(is_small(*_cell_kernels(cell, c)[0].shape[1:]) for cell, _ in parts)
 
 
 def _full_kernels(parts, c: float):

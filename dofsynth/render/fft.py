@@ -25,6 +25,28 @@ from dofsynth.render.frame import add_clipped
 SMALL_KERNEL = 5
 
 
+def is_small(kh: int, kw: int) -> bool:
+    """Whether a (kh, kw) kernel (its non-zero box) is convolved directly (cv2.filter2D)."""
+    return max(kh, kw) <= 2 * SMALL_KERNEL + 1
+
+
+def filtered(pad: np.ndarray, flipped: np.ndarray) -> np.ndarray:
+    """The convolutions of a stack of blocks (C, hp, wp) by a kernel (given flipped, (eh + 1,
+    ew + 1)) where every tap lies inside the block, (C, hp - eh, wp - ew), by one cv2.filter2D
+    over the blocks stacked (the outputs kept read only their own block): a block holding its
+    input with eh rows and ew columns of zeros on every side gives the input's full
+    convolution. Small kernels only (cv2 turns to its DFT past 11 x 11); a 1 x 1 identity
+    kernel returns `pad` itself."""
+    eh, ew = flipped.shape[0] - 1, flipped.shape[1] - 1
+    if not (eh or ew):  # a 1 x 1 kernel: the identity, or a scale (a moment kernel at radius 0)
+        return pad if flipped[0, 0] == 1.0 else pad * flipped[0, 0]
+    C, hp, wp = pad.shape
+    ay, ax = eh // 2, ew // 2
+    out = cv2.filter2D(pad.reshape(C * hp, wp), -1, flipped, anchor=(ax, ay),
+                       borderType=cv2.BORDER_CONSTANT).reshape(pad.shape)
+    return out[:, ay : ay + hp - eh, ax : ax + wp - ew]
+
+
 def _kernel_spectrum(k: np.ndarray, n0: int, n1: int) -> np.ndarray:
     """rfft2 over an (n0, n1) grid of the kernel placed at the grid's top-left corner: rows
     first (only 2S+1 of them are non-zero), then columns (complex64)."""
@@ -69,12 +91,13 @@ class Convolver:
         self.s = support_radius(signed_radius)
         k = kernel(aperture, signed_radius) if k is None else k  # k: another kernel of that size
         self.k = k
-        self.ky0, self.kx0 = trim_box(k)[:2]  # the kernel used starts there in the (2S+1)^2 array
-        k = trimmed(k)
+        box = trim_box(k)
+        self.ky0, self.kx0 = box[:2]  # the kernel used starts there in the (2S+1)^2 array
+        k = trimmed(k, box)
         self.used = k
         self.eh, self.ew = k.shape[0] - 1, k.shape[1] - 1  # the full convolution's growth per axis
         self.h, self.w = h, w
-        self.direct = max(self.eh, self.ew) <= 2 * SMALL_KERNEL
+        self.direct = is_small(*k.shape)
         self.ty, self.tx = h, w
         if self.direct:
             self.flipped = np.ascontiguousarray(k[::-1, ::-1])
@@ -89,28 +112,13 @@ class Convolver:
             self.n1 = sfft.next_fast_len(self.tx + self.ew, real=True)
             self.spec = _kernel_spectrum(k, self.n0, self.n1)
 
-    def _filtered(self, pad: np.ndarray) -> np.ndarray:
-        """The full convolutions (C, h + eh, w + ew) of a stack of blocks, each in the middle of
-        its zero-padded buffer (C, h + 2 eh, w + 2 ew), by one cv2.filter2D over the buffers
-        stacked (the kernel reaches no other buffer); small kernels only."""
-        eh, ew = self.eh, self.ew
-        if not (eh or ew):  # a 1 x 1 kernel: the identity, or a scale (a moment kernel at radius 0)
-            if self.used[0, 0] != 1.0:
-                pad *= self.used[0, 0]
-            return pad
-        C, hp, wp = pad.shape
-        ay, ax = eh // 2, ew // 2
-        out = cv2.filter2D(pad.reshape(C * hp, wp), -1, self.flipped, anchor=(ax, ay),
-                           borderType=cv2.BORDER_CONSTANT).reshape(pad.shape)
-        return out[:, ay : ay + hp - eh, ax : ax + wp - ew]
-
     def _direct(self, tile, i0: int, i1: int, j0: int, j1: int) -> np.ndarray:
         """Full convolution of input[i0:i1, j0:j1] by cv2.filter2D (small kernels); the block
         is written straight into the middle of its zero-padded buffer."""
         eh, ew = self.eh, self.ew
         pad = np.zeros((1, i1 - i0 + 2 * eh, j1 - j0 + 2 * ew), np.float32)
         tile(i0, i1, j0, j1, pad[0, eh : eh + i1 - i0, ew : ew + j1 - j0])
-        return self._filtered(pad)[0]
+        return filtered(pad, self.flipped)[0]
 
     def add_into(self, tile, dst: np.ndarray, oy: int, ox: int) -> None:
         """dst[oy + p, ox + q] += full[p, q] where it lies inside dst; the input comes from
@@ -142,7 +150,7 @@ class Convolver:
         eh, ew = self.eh, self.ew
         pad = np.zeros((C, h + 2 * eh, w + 2 * ew), np.float32)
         pad[:, eh : eh + h, ew : ew + w] = src
-        add_clipped(dst, oy + self.ky0, ox + self.kx0, self._filtered(pad))
+        add_clipped(dst, oy + self.ky0, ox + self.kx0, filtered(pad, self.flipped))
 
     def _add_bands(self, tile, dst, oy, ox, rows, width, skip, j0, j1) -> None:
         """One column tile by FFT: for each band (p0, p1, i0, i1) of `rows`, output rows p0 .. p1
@@ -215,6 +223,8 @@ def convolve_stack(x: np.ndarray, kernels: np.ndarray, pairs, valid: bool = Fals
     if valid:
         window = (kh - 1, h, kw - 1, w)
     y0, y1, x0, x1 = (0, h + kh - 1, 0, w + kw - 1) if window is None else window
+    if is_small(kh, kw):  # direct, as `Convolver` takes them
+        return _direct_stack(x, kernels, pairs, (y0, y1, x0, x1))
     n0 = sfft.next_fast_len(max(h, h + kh - 1 - y0, y1), real=True)
     n1 = sfft.next_fast_len(max(w, w + kw - 1 - x0, x1), real=True)
     spec = sfft.rfft2(x, s=(n0, n1))
@@ -230,6 +240,28 @@ def convolve_stack(x: np.ndarray, kernels: np.ndarray, pairs, valid: bool = Fals
         for i, (k, c) in enumerate(part):
             np.multiply(kspec[k], spec[c], out=prod[i])
         out[g0 : g0 + len(part)] = sfft.irfft2(prod[: len(part)], s=(n0, n1), overwrite_x=True)[:, y0:y1, x0:x1]
+    return out
+
+
+def _direct_stack(x: np.ndarray, kernels: np.ndarray, pairs, window) -> np.ndarray:
+    """`convolve_stack` of small kernels by cv2.filter2D: each kernel once over the channels
+    it takes, stacked (`filtered`), over the input rows and columns the window reads."""
+    h, w = x.shape[1:]
+    eh, ew = kernels.shape[1] - 1, kernels.shape[2] - 1
+    y0, y1, x0, x1 = window
+    # full output (p, q) reads input rows p - eh .. p, columns q - ew .. q (zeros past x): the
+    # window's rows y0 - eh .. y1 - 1 and columns x0 - ew .. x1 - 1, placed in a zeroed block
+    channels = list(dict.fromkeys(c for _, c in pairs))
+    block = np.zeros((len(channels), y1 - y0 + eh, x1 - x0 + ew), np.float32)
+    r0, r1, c0, c1 = max(y0 - eh, 0), min(y1, h), max(x0 - ew, 0), min(x1, w)
+    if r1 > r0 and c1 > c0:
+        block[:, r0 - y0 + eh : r1 - y0 + eh, c0 - x0 + ew : c1 - x0 + ew] = x[channels, r0:r1, c0:c1]
+    out = np.empty((len(pairs), y1 - y0, x1 - x0), np.float32)
+    for k in dict.fromkeys(k for k, _ in pairs):
+        at = [i for i, (kk, _) in enumerate(pairs) if kk == k]
+        rows = [channels.index(pairs[i][1]) for i in at]
+        src = block if rows == list(range(len(channels))) else block[rows]
+        out[at] = filtered(src, np.ascontiguousarray(kernels[k, ::-1, ::-1]))
     return out
 
 
