@@ -117,6 +117,29 @@ def test_a_cutouts_colour_outside_its_box_is_never_read():
     assert need_map(boxed, 1.0, 12.0, (0, N, 0, N)).any()
 
 
+def test_need_map_marks_the_highest_bounds_until_what_is_left_fits_the_budget(monkeypatch):
+    """`need_map`: tiles whose bound is below MIN_SCORE stay layered; of the others the highest
+    bounds get cells, as few as leave the layered tiles' bounds within ERROR_BUDGET a tile."""
+    import dofsynth.render.adaptive as A
+
+    planes, kept = _scene(), (0, N, 0, N)
+    scores = error_scores(planes, 1.0, 12.0, kept)
+    n, above = scores.size, scores >= A.MIN_SCORE
+    assert above.sum() >= 4
+    for budget in (0.0, float(np.sort(scores[above])[: above.sum() // 2].sum()) / n):
+        monkeypatch.setattr(A, "ERROR_BUDGET", budget)
+        need = need_map(planes, 1.0, 12.0, kept)
+        left = scores[~need]
+        assert not (need & ~above).any() and need.any()
+        assert left.sum() <= budget * n * (1 + 1e-9) or not (above & ~need).any()
+        assert scores[need].min() >= scores[above & ~need].max(initial=0.0)   # the highest first
+        assert left.sum() + scores[need].min() > budget * n                   # no fewer would do
+        if budget == 0.0:
+            assert np.array_equal(need, above)
+        else:
+            assert 0 < need.sum() < above.sum()
+
+
 def test_rectangles_cover_every_marked_tile_and_merge_when_it_pays():
     marked = np.zeros((8, 10), bool)
     marked[1, 1:3] = marked[2, 1:4] = True   # two runs one above the other: one rectangle

@@ -6,7 +6,8 @@ cutout's alpha and what lies behind it: near a blurred cutout's edge part of the
 the cutout and the rest what lies behind, which one blur per plane cannot tell apart. The
 error vanishes where either is in focus, where the two share a CoC and where what lies behind
 is flat (docs/rendering.md). `error_scores` bounds it per pixel and averages the bound over a
-grid of TILE x TILE px tiles; `need_map` marks the tiles whose bound reaches MIN_SCORE;
+grid of TILE x TILE px tiles; `need_map` marks the tiles of highest bound, leaving layered
+those whose bounds add up to at most ERROR_BUDGET a tile and any below MIN_SCORE;
 `rectangles` gathers them into rectangles, each rendered through 2 x 2 cells of the aperture
 by the sub-aperture composite (dofsynth.render.subaperture.render_cells) from the planes cut
 to it plus a margin holding every pixel its result reads, and written over the layered result
@@ -30,6 +31,7 @@ from dofsynth.render.subaperture import cells, coc_reach, compact_disparity, cut
 TILE = 32           # px: the grid on which the cells are placed
 RECT_COST = 4.0     # tiles: the cost of one more rendered rectangle, in tiles' area (`rectangles`)
 MIN_SCORE = 3e-4    # tiles whose bound (`error_scores`: a mean square, linear light) is lower stay layered
+ERROR_BUDGET = 3e-5  # the bound, in mean over the frame's tiles, left layered at most (`need_map`)
 MIN_DIFFERENCE = 0.5  # px: a cutout and a plane behind it whose CoCs differ less count as alike
 READ = 4            # px: the tiles' statistics are read on every READ-th pixel of every READ-th row
 
@@ -147,9 +149,17 @@ def error_scores(planes, focus: float, max_coc: float, kept: tuple[int, int, int
 
 
 def need_map(planes, focus: float, max_coc: float, kept: tuple[int, int, int, int]) -> np.ndarray:
-    """(ty, tx) bool: the TILE x TILE tiles of `kept` that get 2 x 2 cells, those whose
-    `error_scores` bound reaches MIN_SCORE; the others keep the layered result."""
-    return error_scores(planes, focus, max_coc, kept) >= MIN_SCORE
+    """(ty, tx) bool: the TILE x TILE tiles of `kept` that get 2 x 2 cells; the others keep the
+    layered result. From the lowest `error_scores` bound up, tiles stay layered while their
+    bounds add up to at most ERROR_BUDGET times the number of tiles (what they leave bounds the
+    frame's mean squared error), and every tile whose bound is below MIN_SCORE stays layered.
+    Ties go in row-major order (deterministic)."""
+    scores = error_scores(planes, focus, max_coc, kept)
+    flat = scores.ravel()
+    order = np.argsort(flat, kind="stable")
+    layered = np.empty(flat.size, bool)
+    layered[order] = np.cumsum(flat[order]) <= ERROR_BUDGET * flat.size
+    return (scores >= MIN_SCORE) & ~layered.reshape(scores.shape)
 
 
 def rectangles(marked: np.ndarray, pad: float, fixed: float = RECT_COST) -> list[tuple[int, int, int, int]]:
