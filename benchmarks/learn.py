@@ -2,7 +2,7 @@
 under an hour.
 
     .venv/bin/python benchmarks/learn.py [--out out/learn-bench] [--part all|networks|main]
-    .venv/bin/python benchmarks/learn.py --part real [--seeds 3] [--limit N]
+    .venv/bin/python benchmarks/learn.py --part real [--seeds 3] [--limit N] [--only gated]
 
 1. Data: recipes/learn.toml (the demo recipe at 256 px, max CoC up to 8 px, built-in assets),
    2000 train + 100 test samples, generated into OUT/data (kept and reused when present).
@@ -21,11 +21,13 @@ under an hour.
    photos and mattes of ../shared/assets at 512x341 px, max CoC 12-24 px, train and test split
    by asset; 400 + 40 scenes, 2 targets each) into OUT/data-real; recipes/train-learn-real.toml
    (the hybrid model, 128 px crops, trained on the depth errors of `eval --depth realistic`),
-   the paper's networks on the same data, the hybrid in linear light ([data] color) and the
-   hybrid trained for 1200 steps instead of 400, each trained with --seeds seeds; one table on
+   the paper's networks on the same data, the hybrid in linear light ([data] color), the
+   hybrid trained for 1200 steps instead of 400, and so trained with its correction gated to
+   the band around the given depth's edges ([model] gate = "edges"), each trained with --seeds
+   seeds; one table on
    the test split, everyone given the same realistic depth: PSNR and SSIM overall, in the edge
    band, outside it and where no blur reaches (the target is the input), the mean of the seeds
-   and their range. About 4 minutes per run of 400 steps, 11 of 1200 (2 cores), an hour in
+   and their range. About 4 minutes per run of 400 steps, 11 of 1200 (2 cores), 1.5 hours in
    all.
 Every size (image, crops, low resolution, steps, batch, parameters) is printed. Runs go to
 OUT/runs/<config hash>; a finished run is reused (delete it to train again).
@@ -180,10 +182,11 @@ def spread(values: list[float], digits: int) -> str:
     return f"{sum(values) / len(values):.{digits}f} ({min(values):.{digits}f}-{max(values):.{digits}f})"
 
 
-def part_real(out: Path, seeds: list[int], limit: int | None) -> None:
+def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "") -> None:
     """The lens-blur benchmark of issue #25: recipes/learn-real.toml (real photos, split by
     asset, max CoC 12-24 px), the hybrid model and the paper's networks trained with each seed
-    on realistic depth errors; everyone given the same realistic depth on the test split."""
+    on realistic depth errors; everyone given the same realistic depth on the test split.
+    `only`: just the models whose names hold it (with the classical and all-in-focus rows)."""
     recipe, base = load_recipe(REAL_RECIPE), load(REAL_CONFIG)
     data = make_data(out, REAL_RECIPE, "data-real")
     d = base.data
@@ -196,7 +199,11 @@ def part_real(out: Path, seeds: list[int], limit: int | None) -> None:
           f"test: {'all' if limit is None else limit} scenes, depth realistic, evaluation seed 12345")
     kinds = {"hybrid": base, "deeplens (paper networks)": replace(base, "model", **DEEPLENS),
              "hybrid, color = linear": replace(base, "data", color="linear"),
-             f"hybrid, {LONG} steps": replace(base, "train", max_steps=LONG, checkpoint_interval=LONG)}
+             f"hybrid, {LONG} steps": replace(base, "train", max_steps=LONG, checkpoint_interval=LONG),
+             f"hybrid gated to the edge bands, {LONG} steps": replace(replace(base, "model", gate="edges"), "train",
+                                                                     max_steps=LONG, checkpoint_interval=LONG)}
+    if only:
+        kinds = {k: v for k, v in kinds.items() if only in k}
     tables: dict[str, list[dict]] = {}
     for name, cfg in kinds.items():
         for seed in seeds:
@@ -227,12 +234,13 @@ def main() -> None:
                     help="real: the lens-blur benchmark on real photos (recipes/learn-real.toml), not part of all")
     ap.add_argument("--seeds", type=int, default=3, help="with --part real: training seeds per model (default 3)")
     ap.add_argument("--limit", type=int, default=None, help="with --part real: test scenes scored (default all)")
+    ap.add_argument("--only", default="", help="with --part real: only the models whose names hold this text")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     progress.set_verbosity(quiet=True)  # the training bars; this script prints its own lines
     if args.part == "real":
-        part_real(args.out, list(range(args.seeds)), args.limit)
+        part_real(args.out, list(range(args.seeds)), args.limit, args.only)
         return
     recipe, base = load_recipe(RECIPE), load(CONFIG)
     data = make_data(args.out)

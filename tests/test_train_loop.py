@@ -536,6 +536,54 @@ def test_the_untrained_hybrid_is_the_classical_renderer(setup):
         model(one["image"], one["signed_lo"], cfg.data.levels)
 
 
+def test_the_edge_band_is_every_pixel_an_edges_blur_reaches():
+    """`edge_band`: the pixels within (larger |CoC| + 1 px) chessboard distance of a pair of
+    neighbours whose CoCs differ by 1 px or more, against a brute-force scan."""
+    from dofsynth.train.models import edge_band
+
+    g = np.random.default_rng(4)
+    signed = np.zeros((40, 50), np.float32) + 0.1
+    signed[10:22, 8:30] = 0.6                      # a plate 2.4 px of CoC in front (coc_px 4)
+    signed[30:, 35:] = -0.2                        # a step of 1.2 px behind
+    signed[:5, 40:] = 0.1 + 0.2 / 4                # a step of 0.2 px: no edge
+    signed += g.uniform(-0.01, 0.01, signed.shape).astype(np.float32)  # noise far below 1 px
+    got = edge_band(torch.from_numpy(signed)[None, None], 4.0)[0, 0].numpy()
+    c = signed * 4.0
+    want = np.zeros_like(got)
+    H, W = c.shape
+    for y in range(H):
+        for x in range(W):
+            win = c[max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2]
+            if win.max() - win.min() >= 1.0:
+                r = int(np.floor(np.abs(win).max() + 1.0))
+                want[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1] = True
+    assert np.array_equal(got, want)
+    assert want.any() and not want.all() and not want[:3, 44:].any()
+
+
+def test_a_gated_hybrid_corrects_only_near_the_given_depths_edges(setup):
+    """[model] gate = "edges": whatever the correction learned, the output is the classical
+    render wherever no edge of the given depth is within the blur's reach (`edge_band`)."""
+    from dofsynth.train.data import find_segments, full_res_signed, raw_samples, training_item
+    from dofsynth.train.models import HybridNet, edge_band
+
+    _, data, _, _ = setup
+    cfg = tiny_config(model={"kind": "hybrid", "coc_ref": 4.0, "identity": False, "gate": "edges"})
+    raw = next(raw_samples(find_segments(data, "train"), "train"))
+    one = {k: (v[None] if torch.is_tensor(v) else [v]) for k, v in training_item(raw, cfg, np.random.default_rng(3)).items()}
+    model = HybridNet(cfg.model).eval()
+    torch.nn.init.normal_(model.head.weight, std=0.5), torch.nn.init.constant_(model.head.bias, 0.25)  # "trained"
+    kw = full_res_signed(one, cfg)
+    with torch.no_grad():
+        _, high = model(one["image"], one["signed_lo"], cfg.data.levels, **kw)
+    band = edge_band(kw["signed_hi"], 4.0).expand_as(high)
+    assert band.any() and not band.all()
+    assert torch.equal(high[~band], one["classical"][~band])
+    assert not torch.equal(high[band], one["classical"][band])
+    with pytest.raises(ValueError, match="gate"):
+        model(one["image"], one["signed_lo"], cfg.data.levels, classical=one["classical"])
+
+
 def test_a_hybrid_run_trains_resumes_bit_identically_and_renders_a_photo(setup, tmp_path, shared_assets):
     _, data, _, _ = setup
     cfg_path = tmp_path / "hybrid.toml"

@@ -88,6 +88,8 @@ class ModelConfig:
                                                             # aperture; 0 = the largest max_coc in the data
     identity: bool = key(True)                              # the output is the input where no blur reaches (by
                                                             # construction; false: the paper's network alone)
+    gate: str = key("none", choices=("none", "edges"))      # hybrid: "edges" = its correction only within the
+                                                            # blur's reach of an edge of the given depth
 
 
 @dataclass_kw

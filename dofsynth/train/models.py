@@ -259,6 +259,18 @@ def untouched(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
     return free
 
 
+@torch.no_grad()
+def edge_band(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
+    """(B, 1, H, W) bool: the pixels within the blur's reach of a depth edge of `signed` (its
+    CoC is signed * coc_px px): a pixel whose CoC differs by 1 px or more from one of its 8
+    neighbours' lies on an edge, which reaches the larger |CoC| of that 3 x 3 + 1 px (chessboard
+    distance, the kernel's anti-aliased rim included) around it."""
+    c = signed.float() * float(coc_px)
+    hi, lo = F.max_pool2d(c, 3, 1, 1), -F.max_pool2d(-c, 3, 1, 1)
+    reach = torch.where(hi - lo >= 1.0, torch.maximum(hi.abs(), lo.abs()) + 1.0, torch.zeros_like(c))
+    return _spread_reach(reach, math.ceil(float(reach.max())) if reach.numel() else 0) > 0
+
+
 class DeepLensNet(nn.Module):
     """Both networks: `forward(image, signed_lo, steps)` -> (L, H).
 
@@ -278,6 +290,7 @@ class DeepLensNet(nn.Module):
                                 norm=cfg.norm)
         self.up = GuidedUpsampler(cfg.up_width, cfg.up_depth, cfg.norm)
         self.identity = cfg.identity
+        self.gate = cfg.gate == "edges"
 
     def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
                 image_lo: torch.Tensor | None = None, *, sizes: list | None = None,
@@ -311,7 +324,9 @@ class HybridNet(nn.Module):
     last layer starts at zero, so the untrained model *is* the classical renderer and training
     only learns where to correct it (depth edges, wrong depth, what a blurred foreground hides).
     L is H area-reduced to the lowest size, so the loss is the same as DeepLensNet's. The other
-    arguments are DeepLensNet's; with [model] identity, H is the image where no blur reaches."""
+    arguments are DeepLensNet's; with [model] identity, H is the image where no blur reaches;
+    with [model] gate = "edges", H is C wherever no depth edge of signed_hi is within the blur's
+    reach (`edge_band`): the correction acts only where the single-image render is unreliable."""
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
@@ -319,6 +334,7 @@ class HybridNet(nn.Module):
         self.head = nn.Conv2d(cfg.kp_width, 3, 1)
         nn.init.zeros_(self.head.weight), nn.init.zeros_(self.head.bias)
         self.identity = cfg.identity
+        self.gate = cfg.gate == "edges"
 
     def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
                 image_lo: torch.Tensor | None = None, *, sizes: list | None = None, rows: int | None = None,
@@ -329,7 +345,12 @@ class HybridNet(nn.Module):
         sizes = size_chain(tuple(image.shape[-2:]), steps) if sizes is None else sizes
         _check(image, 3, "image"), _check(classical, 3, "classical", image.shape[-2:])
         signed = signed_hi if signed_hi is not None else bilinear(signed_lo, tuple(image.shape[-2:]))
-        result = classical + self.head(self.body(torch.cat([image, classical, signed], dim=1)))
+        correction = self.head(self.body(torch.cat([image, classical, signed], dim=1)))
+        if self.gate:
+            if signed_hi is None:
+                raise ValueError('[model] gate = "edges" needs the full-resolution disparity (signed_hi=, coc_px=)')
+            correction = correction * edge_band(signed_hi, coc_px)
+        result = classical + correction
         if self.identity and signed_hi is not None:
             result = torch.where(untouched(signed_hi, coc_px), image, result)
         return area_resize(result, sizes[0]), result
