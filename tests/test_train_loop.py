@@ -538,8 +538,9 @@ def test_the_untrained_hybrid_is_the_classical_renderer(setup):
 
 def test_the_edge_band_is_every_pixel_an_edges_blur_reaches():
     """`edge_band`: the pixels within (larger |CoC| + 1 px) chessboard distance of a pair of
-    neighbours whose CoCs differ by 1 px or more, against a brute-force scan."""
-    from dofsynth.train.models import edge_band
+    neighbours whose CoCs differ by 1 px or more, against a brute-force scan; `edge_weight`
+    fades from 1 near the edges to 0 where the band ends without a step."""
+    from dofsynth.train.models import edge_band, edge_weight
 
     g = np.random.default_rng(4)
     signed = np.zeros((40, 50), np.float32) + 0.1
@@ -559,6 +560,11 @@ def test_the_edge_band_is_every_pixel_an_edges_blur_reaches():
                 want[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1] = True
     assert np.array_equal(got, want)
     assert want.any() and not want.all() and not want[:3, 44:].any()
+    # the gate's weight: 1 on the edges of the longest reach, no step anywhere (no seam)
+    weight = edge_weight(torch.from_numpy(signed)[None, None], 4.0)[0, 0].numpy()
+    ramp = max(np.floor(np.abs(c).max() + 1.0), 2.0) / 2  # (the plate's reach / 2)
+    assert weight.min() == 0.0 and weight.max() == 1.0 and weight[10, 8:30].min() == 1.0
+    assert max(np.abs(np.diff(weight, axis=0)).max(), np.abs(np.diff(weight, axis=1)).max()) <= 1.0 / ramp + 1e-6
 
 
 def test_a_gated_hybrid_corrects_only_near_the_given_depths_edges(setup):

@@ -260,15 +260,23 @@ def untouched(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
 
 
 @torch.no_grad()
-def edge_band(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
-    """(B, 1, H, W) bool: the pixels within the blur's reach of a depth edge of `signed` (its
-    CoC is signed * coc_px px): a pixel whose CoC differs by 1 px or more from one of its 8
-    neighbours' lies on an edge, which reaches the larger |CoC| of that 3 x 3 + 1 px (chessboard
-    distance, the kernel's anti-aliased rim included) around it."""
+def edge_weight(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
+    """(B, 1, H, W) float32 in [0, 1]: how near the pixels lie to a depth edge of `signed` (its
+    CoC is signed * coc_px px). A pixel whose CoC differs by 1 px or more from one of its 8
+    neighbours' lies on an edge, which reaches r = the larger |CoC| of that 3 x 3 + 1 px around
+    it; at chessboard distance d the weight is (r - d) / (R / 2), at most 1, R the image's
+    longest reach: 1 near the edges, falling linearly to 0 where their reach ends (no seam)."""
     c = signed.float() * float(coc_px)
     hi, lo = F.max_pool2d(c, 3, 1, 1), -F.max_pool2d(-c, 3, 1, 1)
     reach = torch.where(hi - lo >= 1.0, torch.maximum(hi.abs(), lo.abs()) + 1.0, torch.zeros_like(c))
-    return _spread_reach(reach, math.ceil(float(reach.max())) if reach.numel() else 0) > 0
+    spread = _spread_reach(reach, math.ceil(float(reach.max())) if reach.numel() else 0)
+    ramp = torch.clamp(reach.amax(dim=(-2, -1), keepdim=True) / 2, min=1.0)
+    return torch.clamp(spread / ramp, 0.0, 1.0)
+
+
+def edge_band(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
+    """(B, 1, H, W) bool: the pixels within the blur's reach of a depth edge (`edge_weight` > 0)."""
+    return edge_weight(signed, coc_px) > 0
 
 
 class DeepLensNet(nn.Module):
@@ -325,8 +333,9 @@ class HybridNet(nn.Module):
     only learns where to correct it (depth edges, wrong depth, what a blurred foreground hides).
     L is H area-reduced to the lowest size, so the loss is the same as DeepLensNet's. The other
     arguments are DeepLensNet's; with [model] identity, H is the image where no blur reaches;
-    with [model] gate = "edges", H is C wherever no depth edge of signed_hi is within the blur's
-    reach (`edge_band`): the correction acts only where the single-image render is unreliable."""
+    with [model] gate = "edges", the correction is weighted by `edge_weight` of signed_hi, so H
+    is C wherever no depth edge is within the blur's reach: the correction acts only where the
+    single-image render is unreliable, fading out towards the edge of that band."""
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
@@ -349,7 +358,7 @@ class HybridNet(nn.Module):
         if self.gate:
             if signed_hi is None:
                 raise ValueError('[model] gate = "edges" needs the full-resolution disparity (signed_hi=, coc_px=)')
-            correction = correction * edge_band(signed_hi, coc_px)
+            correction = correction * edge_weight(signed_hi, coc_px)
         result = classical + correction
         if self.identity and signed_hi is not None:
             result = torch.where(untouched(signed_hi, coc_px), image, result)
