@@ -588,6 +588,8 @@ def test_a_gated_hybrid_corrects_only_near_the_given_depths_edges(setup):
     assert not torch.equal(high[band], one["classical"][band])
     with pytest.raises(ValueError, match="gate"):
         model(one["image"], one["signed_lo"], cfg.data.levels, classical=one["classical"])
+    with pytest.raises(ValueError, match="model.gate"):
+        tiny_config(model={"gate": "edges"})  # the paper's networks have no correction to gate
 
 
 def test_a_hybrid_run_trains_resumes_bit_identically_and_renders_a_photo(setup, tmp_path, shared_assets):

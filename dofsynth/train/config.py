@@ -168,6 +168,9 @@ def _check(cfg: Config, source: str) -> None:
         raise error(source, "data.crop", f"a multiple of 2**levels = {2 ** d.levels}", d.crop)
     if d.target != "random" and not d.target.isdigit():
         raise error(source, "data.target", "'random' or a target index", d.target)
+    if cfg.model.gate != "none" and cfg.model.kind != "hybrid":
+        raise error(source, "model.gate", "'none' unless model.kind = 'hybrid' (it gates the hybrid's correction)",
+                    cfg.model.gate)
 
 
 def from_dict(d: dict, source: str = "<config>") -> Config:

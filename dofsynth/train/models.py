@@ -298,7 +298,6 @@ class DeepLensNet(nn.Module):
                                 norm=cfg.norm)
         self.up = GuidedUpsampler(cfg.up_width, cfg.up_depth, cfg.norm)
         self.identity = cfg.identity
-        self.gate = cfg.gate == "edges"
 
     def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
                 image_lo: torch.Tensor | None = None, *, sizes: list | None = None,
