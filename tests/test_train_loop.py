@@ -536,11 +536,11 @@ def test_the_untrained_hybrid_is_the_classical_renderer(setup):
         model(one["image"], one["signed_lo"], cfg.data.levels)
 
 
-def test_the_edge_band_is_every_pixel_an_edges_blur_reaches():
-    """`edge_band`: the pixels within (larger |CoC| + 1 px) chessboard distance of a pair of
-    neighbours whose CoCs differ by 1 px or more, against a brute-force scan; `edge_weight`
+def test_the_edge_weight_covers_every_pixel_an_edges_blur_reaches_and_fades():
+    """`edge_weight` > 0: the pixels within (larger |CoC| + 1 px) chessboard distance of a pair
+    of neighbours whose CoCs differ by 1 px or more, against a brute-force scan; the weight
     fades from 1 near the edges to 0 where the band ends without a step."""
-    from dofsynth.train.models import edge_band, edge_weight
+    from dofsynth.train.models import edge_weight
 
     g = np.random.default_rng(4)
     signed = np.zeros((40, 50), np.float32) + 0.1
@@ -548,7 +548,8 @@ def test_the_edge_band_is_every_pixel_an_edges_blur_reaches():
     signed[30:, 35:] = -0.2                        # a step of 1.2 px behind
     signed[:5, 40:] = 0.1 + 0.2 / 4                # a step of 0.2 px: no edge
     signed += g.uniform(-0.01, 0.01, signed.shape).astype(np.float32)  # noise far below 1 px
-    got = edge_band(torch.from_numpy(signed)[None, None], 4.0)[0, 0].numpy()
+    weight = edge_weight(torch.from_numpy(signed)[None, None], 4.0)[0, 0].numpy()
+    got = weight > 0
     c = signed * 4.0
     want = np.zeros_like(got)
     H, W = c.shape
@@ -561,7 +562,6 @@ def test_the_edge_band_is_every_pixel_an_edges_blur_reaches():
     assert np.array_equal(got, want)
     assert want.any() and not want.all() and not want[:3, 44:].any()
     # the gate's weight: 1 on the edges of the longest reach, no step anywhere (no seam)
-    weight = edge_weight(torch.from_numpy(signed)[None, None], 4.0)[0, 0].numpy()
     ramp = max(np.floor(np.abs(c).max() + 1.0), 2.0) / 2  # (the plate's reach / 2)
     assert weight.min() == 0.0 and weight.max() == 1.0 and weight[10, 8:30].min() == 1.0
     assert max(np.abs(np.diff(weight, axis=0)).max(), np.abs(np.diff(weight, axis=1)).max()) <= 1.0 / ramp + 1e-6
@@ -569,9 +569,9 @@ def test_the_edge_band_is_every_pixel_an_edges_blur_reaches():
 
 def test_a_gated_hybrid_corrects_only_near_the_given_depths_edges(setup):
     """[model] gate = "edges": whatever the correction learned, the output is the classical
-    render wherever no edge of the given depth is within the blur's reach (`edge_band`)."""
+    render wherever no edge of the given depth is within the blur's reach (`edge_weight` 0)."""
     from dofsynth.train.data import find_segments, full_res_signed, raw_samples, training_item
-    from dofsynth.train.models import HybridNet, edge_band
+    from dofsynth.train.models import HybridNet, edge_weight
 
     _, data, _, _ = setup
     cfg = tiny_config(model={"kind": "hybrid", "coc_ref": 4.0, "identity": False, "gate": "edges"})
@@ -582,7 +582,7 @@ def test_a_gated_hybrid_corrects_only_near_the_given_depths_edges(setup):
     kw = full_res_signed(one, cfg)
     with torch.no_grad():
         _, high = model(one["image"], one["signed_lo"], cfg.data.levels, **kw)
-    band = edge_band(kw["signed_hi"], 4.0).expand_as(high)
+    band = (edge_weight(kw["signed_hi"], 4.0) > 0).expand_as(high)
     assert band.any() and not band.all()
     assert torch.equal(high[~band], one["classical"][~band])
     assert not torch.equal(high[band], one["classical"][band])

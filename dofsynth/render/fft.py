@@ -140,7 +140,7 @@ class Convolver:
 
     def add_stack_into(self, src: np.ndarray, dst: np.ndarray, oy: int, ox: int) -> None:
         """`add_into` for each channel of src (C, h, w) into dst (C, H, W). Small kernels: one
-        cv2.filter2D over the channels stacked (`_filtered`), the same values as channel by
+        cv2.filter2D over the channels stacked (`filtered`), the same values as channel by
         channel."""
         if not self.direct:
             for c in range(src.shape[0]):

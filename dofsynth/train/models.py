@@ -274,11 +274,6 @@ def edge_weight(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
     return torch.clamp(spread / ramp, 0.0, 1.0)
 
 
-def edge_band(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
-    """(B, 1, H, W) bool: the pixels within the blur's reach of a depth edge (`edge_weight` > 0)."""
-    return edge_weight(signed, coc_px) > 0
-
-
 class DeepLensNet(nn.Module):
     """Both networks: `forward(image, signed_lo, steps)` -> (L, H).
 
@@ -350,13 +345,13 @@ class HybridNet(nn.Module):
                 classical: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         if classical is None:
             raise ValueError("the hybrid model needs the classical render of the image (classical=)")
+        if self.gate and signed_hi is None:
+            raise ValueError('[model] gate = "edges" needs the full-resolution disparity (signed_hi=, coc_px=)')
         sizes = size_chain(tuple(image.shape[-2:]), steps) if sizes is None else sizes
         _check(image, 3, "image"), _check(classical, 3, "classical", image.shape[-2:])
         signed = signed_hi if signed_hi is not None else bilinear(signed_lo, tuple(image.shape[-2:]))
         correction = self.head(self.body(torch.cat([image, classical, signed], dim=1)))
         if self.gate:
-            if signed_hi is None:
-                raise ValueError('[model] gate = "edges" needs the full-resolution disparity (signed_hi=, coc_px=)')
             correction = correction * edge_weight(signed_hi, coc_px)
         result = classical + correction
         if self.identity and signed_hi is not None:
