@@ -15,8 +15,9 @@ their kernels are computed once per process), at most `max(level_step, level_rat
 pixels apart; each pixel is shared between its two
 neighbouring levels with linear weights `w_k`, and `out = sum_k K_k * (w_k P) / sum_k K_k * w_k`
 (the denominator is the same scatter applied to ones; a 1-D convolution when the map is a
-broadcast row or column). A constant map is one level, i.e. the exact constant result. For a
-ramp (a broadcast row or column) each pixel's disc is also weighted by the Jacobian of its
+broadcast row or column). A constant map is one level, i.e. the exact constant result. A ramp
+(a broadcast row or column) is transformed once along the axis it is constant on and each level
+convolved along the ramp in that spectrum (`_scatter_line`); each pixel's disc is also weighted by the Jacobian of its
 parallax, 1 + p . grad(c) for the aperture point p it reaches (`kernel_moments`): what a thin lens
 gathers from a slanted plane, which a plain scatter lacks. The approximations are the linear
 interpolation of kernels between levels and the first-order Jacobian (docs/rendering.md).
@@ -24,12 +25,14 @@ No torch here: this module is on the data-generation path.
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
+import scipy.fft as sfft
 
 from dofsynth.optics.coc import coc_radius
 from dofsynth.optics.kernel import kernel, kernel_moments, support_radius
-from dofsynth.render.fft import Convolver, copy_tile
-from dofsynth.render.frame import add_clipped, compact, grab, is_one
+from dofsynth.render.fft import Convolver, copy_tile, is_small, trimmed
+from dofsynth.render.frame import compact, grab, is_one
 from dofsynth.render.planes import alpha_box
 
 # Default relative level spacing of varying-disparity planes (RenderOptions.level_ratio).
@@ -137,8 +140,9 @@ def _composite_varying(accs, rgb, alpha, dmap, box, max_coc, focus, apertures, b
 
     Work region: O, the output (the frame for the backmost plane, else the alpha box grown by
     the largest kernel), and E, O grown by that kernel again (the pixels that reach O; outside
-    the frame colour, alpha and the CoC map are edge-replicated). A map that is a broadcast row or column (a ramp) keeps its
-    levels as one row or column."""
+    the frame colour, alpha and the CoC map are edge-replicated). A map that is a broadcast row
+    or column (a ramp) keeps its levels as one row or column and is scattered by `_scatter_line`,
+    a 2-D map by `_scatter_map`."""
     _, H, W = accs[0].shape
     cm = coc_radius(compact(np.asarray(dmap, dtype=np.float32)), focus, max_coc)
     smax = support_radius(max(abs(float(cm.min())), abs(float(cm.max()))))
@@ -151,106 +155,191 @@ def _composite_varying(accs, rgb, alpha, dmap, box, max_coc, focus, apertures, b
     if oy1 <= oy0 or ox1 <= ox0:
         return
     ey0, ey1, ex0, ex1 = oy0 - smax, oy1 + smax, ox0 - smax, ox1 + smax
-    he, we = ey1 - ey0, ex1 - ex0
     iy = np.clip(np.arange(ey0, ey1), 0, H - 1) if cm.shape[0] > 1 else np.zeros(1, np.intp)
     ix = np.clip(np.arange(ex0, ex1), 0, W - 1) if cm.shape[1] > 1 else np.zeros(1, np.intp)
     c_e = cm[np.ix_(iy, ix)]  # compact along broadcast axes
-    levels, k0c, fc = level_weights(c_e, level_step, level_ratio)
     one = backmost and is_one(alpha)
-    # A map constant along x (or y) has weights constant along it: the weight channel's blur
-    # is then a 1-D convolution with the kernel's projection (no FFT), kept as a column/row.
+
+    def read(y0, y1, x0, x1):
+        """E[y0:y1, x0:x1]'s premultiplied colour and alpha (no alpha for an opaque backmost
+        plane), (C, h, w)."""
+        out = np.empty((3 if one else 4, y1 - y0, x1 - x0), np.float32)
+        for ch in range(3):
+            grab(rgb[:, :, ch], ey0 + y0, ey0 + y1, ex0 + x0, ex0 + x1, True, out[ch])
+        if not one:
+            grab(alpha, ey0 + y0, ey0 + y1, ex0 + x0, ex0 + x1, True, out[3])
+            out[:3] *= out[3]
+        return out
+
     along = 0 if c_e.shape[1] == 1 else (1 if c_e.shape[0] == 1 else None)
-    # The slope of a ramp's CoC (px per px), for the Jacobian weight; None for 2-D maps.
-    slope = None
-    if along is not None and c_e.size > 1:
-        line = c_e[:, 0] if along == 0 else c_e[0]
-        g = np.clip(np.gradient(line.astype(np.float64)), -MAX_SLOPE, MAX_SLOPE).astype(np.float32)
-        slope = g[:, None] if along == 0 else g[None, :]
-        slope = slope if np.any(slope) else None
-    # Accumulators over O, per aperture: premultiplied colour (straight into acc for the
-    # backmost plane: acc is still black), alpha (not for an opaque backmost plane) and weight.
+    scatter = _scatter_map if along is None else _scatter_line
+    results = scatter(read, (ey1 - ey0, ex1 - ex0), c_e, smax, apertures, level_step, level_ratio)
     oh, ow = oy1 - oy0, ox1 - ox0
-    cols = [acc[:, oy0:oy1, ox0:ox1] if backmost else np.zeros((3, oh, ow), np.float32) for acc in accs]
-    a_accs = [None if backmost else np.zeros((oh, ow), np.float32) for _ in accs]
-    w_accs = [np.zeros((oh, 1) if along == 0 else (1, ow) if along == 1 else (oh, ow), np.float32) for _ in accs]
-    # Level k touches pixels with k0 in {k-1, k}: a superset box from per-row/column ranges.
+    for acc, (res, w_acc) in zip(accs, results):
+        np.maximum(w_acc, 1e-12, out=w_acc)
+        inv = np.broadcast_to(np.reciprocal(w_acc, out=w_acc), (oh, ow))
+        region = acc[:, oy0:oy1, ox0:ox1]
+        if one:
+            np.multiply(res, inv, out=region)
+            continue
+        keep = 1.0 - res[3] * inv
+        for ch in range(3):
+            region[ch] *= keep
+            region[ch] += res[ch] * inv
+
+
+def _scatter_map(read, shape, c_e, smax, apertures, level_step, level_ratio):
+    """The level scatter of a 2-D CoC map c_e over E (`shape` (he, we)): for each aperture, the
+    unnormalized sum over levels of K_k * (w_k src) over O ((C, oh, ow)) and of K_k * w_k (the
+    weight, (oh, ow)), src = read(y0, y1, x0, x1) (C, h, w) of E. Each level over the box of the
+    pixels it weighs (per-row and per-column ranges), read when it is needed."""
+    he, we = shape
+    oh, ow = he - 2 * smax, we - 2 * smax
+    levels, k0c, fc = level_weights(c_e, level_step, level_ratio)
+    out = [(None, np.zeros((oh, ow), np.float32)) for _ in apertures]
     rlo, rhi = k0c.min(axis=1), k0c.max(axis=1) + 1
     clo, chi = k0c.min(axis=0), k0c.max(axis=0) + 1
-    if rlo.size == 1:
-        rlo, rhi = np.broadcast_to(rlo, he), np.broadcast_to(rhi, he)
-    if clo.size == 1:
-        clo, chi = np.broadcast_to(clo, we), np.broadcast_to(chi, we)
     for k, ck in enumerate(levels):
         rows = np.flatnonzero((rlo <= k) & (rhi >= k))
-        cols_k = np.flatnonzero((clo <= k) & (chi >= k))
-        if rows.size == 0 or cols_k.size == 0:
+        cols = np.flatnonzero((clo <= k) & (chi >= k))
+        if rows.size == 0 or cols.size == 0:
             continue
         s = support_radius(ck)
         # only pixels within s of O reach it: E is O grown by smax >= s
         y0, y1 = max(int(rows[0]), smax - s), min(int(rows[-1]) + 1, smax + oh + s)
-        x0, x1 = max(int(cols_k[0]), smax - s), min(int(cols_k[-1]) + 1, smax + ow + s)
+        x0, x1 = max(int(cols[0]), smax - s), min(int(cols[-1]) + 1, smax + ow + s)
         if y1 <= y0 or x1 <= x0:
             continue
-        sub = (slice(y0, y1) if k0c.shape[0] > 1 else slice(None), slice(x0, x1) if k0c.shape[1] > 1 else slice(None))
-        ksub, fsub = k0c[sub], fc[sub]  # compact along a broadcast axis
-        wsub = np.where(ksub == k, 1.0 - fsub, 0.0).astype(np.float32)
-        wsub += np.where(ksub == k - 1, fsub, 0.0)
-        if not wsub.any():
+        ksub, fsub = k0c[y0:y1, x0:x1], fc[y0:y1, x0:x1]
+        wk = np.where(ksub == k, 1.0 - fsub, 0.0).astype(np.float32)
+        wk += np.where(ksub == k - 1, fsub, 0.0)
+        if not wk.any():
             continue
-        # frame coordinates of the strip, and where its blur lands in O
-        fy0, fy1, fx0, fx1 = y0 + ey0, y1 + ey0, x0 + ex0, x1 + ex0
-        ty0, tx0 = fy0 - s - oy0, fx0 - s - ox0
-        a_sub = None if one else grab(alpha, fy0, fy1, fx0, fx1, True)
-        g = None if slope is None else slope[sub]
-        sources = {}  # per pass weight (the level's, or times the slope): weight, alpha weight, weighted colour
+        weighted = read(y0, y1, x0, x1)
+        weighted *= wk
+        ty0, tx0 = y0 - s - smax, x0 - s - smax  # where the strip's blur lands in O
+        for i, (aperture, (acc, w_acc)) in enumerate(zip(apertures, out)):
+            if acc is None:
+                acc = np.zeros((weighted.shape[0], oh, ow), np.float32)
+                out[i] = acc, w_acc
+            cv = Convolver(float(ck), aperture, y1 - y0, x1 - x0)
+            cv.add_into(copy_tile(wk), w_acc, ty0, tx0)
+            cv.add_stack_into(weighted, acc, ty0, tx0)
+    return out
 
-        def source(which):
-            if which not in sources:
-                wk = wsub if which == 0 else wsub * g
-                wa = np.broadcast_to(wk if one else wk * a_sub, (y1 - y0, x1 - x0))
-                src = np.empty((3, y1 - y0, x1 - x0), np.float32)
-                for ch in range(3):  # each channel read once, then weighted
-                    grab(rgb[:, :, ch], fy0, fy1, fx0, fx1, True, src[ch])
-                    src[ch] *= wa
-                sources[which] = wk, wa, src
-            return sources[which]
 
-        for aperture, col, a_acc, w_acc in zip(apertures, cols, a_accs, w_accs):
+def _scatter_line(read, shape, c_e, smax, apertures, level_step, level_ratio):
+    """`_scatter_map` of a CoC map that varies along one axis only (c_e (he, 1) or (1, we): a
+    ramp), with each pixel's disc weighted by the Jacobian of its parallax, 1 + p . grad(c).
+
+    The kernels are shift-invariant along the other axis u, so E is transformed along u once
+    (a real FFT of n_u >= E's length points: a kernel centred on 0 there wraps onto no output
+    of O) and each level is convolved along its axis a in that domain: the strip of the level's
+    pixels times its weight, an FFT of the strip plus the kernel's width, the product with the
+    kernel's 2-D spectrum, the inverse. The levels' results add up in the u-spectrum and go back
+    once. Small kernels (`fft.is_small`) are convolved directly instead, in space. The weight's
+    blur is a 1-D convolution with the kernel's projection on a. The work is laid out
+    (C, a, u), u contiguous (the long transforms): a copy of E transposed for a horizontal ramp."""
+    a = 0 if c_e.shape[1] == 1 else 1  # the frame axis the CoC varies along
+    u = 1 - a
+    x = read(0, shape[0], 0, shape[1])
+    if a == 1:
+        x = np.stack([cv2.transpose(ch) for ch in x])  # (C, a, u)
+    C, le_a, le_u = x.shape
+    lo_a, lo_u = le_a - 2 * smax, le_u - 2 * smax  # O's size
+    line = c_e[:, 0] if a == 0 else c_e[0]
+    levels, k0, f = level_weights(line, level_step, level_ratio)
+    # the slope of the CoC (px per px), for the Jacobian weight; None where it is 0
+    g = np.clip(np.gradient(line.astype(np.float64)), -MAX_SLOPE, MAX_SLOPE).astype(np.float32) if line.size > 1 else None
+    g = g if g is not None and np.any(g) else None
+    linear = g is not None and float(g.max() - g.min()) <= 1e-6 * max(float(np.abs(g).max()), 1e-6)
+    n_u = sfft.next_fast_len(le_u, real=True)
+    spec = None  # E's spectrum along u, (C, le_a, n_u // 2 + 1), once a level needs it
+    accs = [None] * len(apertures)  # per aperture: the FFT levels' sum in the u-spectrum
+    near = [None] * len(apertures)  # per aperture: the small kernels' sum in space, (C, lo_a, lo_u)
+    w_accs = [np.zeros(lo_a, np.float32) for _ in apertures]
+    for k, ck in enumerate(levels):
+        on = np.flatnonzero((k0 == k) | (k0 == k - 1))
+        if on.size == 0:
+            continue
+        s = support_radius(ck)
+        p0, p1 = max(int(on[0]), smax - s), min(int(on[-1]) + 1, smax + lo_a + s)  # pixels within s of O
+        if p1 <= p0:
+            continue
+        kk_, ff = k0[p0:p1], f[p0:p1]
+        wk = np.where(kk_ == k, 1.0 - ff, 0.0).astype(np.float32) + np.where(kk_ == k - 1, ff, 0.0).astype(np.float32)
+        if not wk.any():
+            continue
+        gk = None if g is None else g[p0:p1]
+        # per aperture, its passes (weight along a, kernel as (a, u)): K with the level's weight
+        # and, where the slope varies, the first moment M with the weight times the slope (on a
+        # linear ramp one pass, K + g M)
+        passes_of = []
+        for aperture in apertures:
             kk = kernel(aperture, float(ck))
-            passes = [(kk, 0)]
-            if g is not None:  # the Jacobian's first-order term: the p-moment kernel times the slope
-                mk = kernel_moments(aperture, float(ck))[1 - along]
+            passes = [(wk, kk)]
+            if gk is not None:
+                mk = kernel_moments(aperture, float(ck))[u]
                 if float(np.abs(mk).max()) > 1e-6:  # (a disc's identity level has centroid 0: nothing)
-                    if float(g.max() - g.min()) <= 1e-6 * max(float(np.abs(g).max()), 1e-6):
-                        passes = [(kk + np.float32(g.flat[0]) * mk, 0)]  # a linear ramp: one pass, K + g M
-                    else:
-                        passes.append((mk, 1))
-            for kp, which in passes:  # weight, alpha and colour of each pass
-                cv = Convolver(float(ck), aperture, y1 - y0, x1 - x0, k=kp)
-                wk, wa, src = source(which)
-                if along == 0:
-                    add_clipped(w_acc, ty0, 0, np.convolve(wk[:, 0], cv.k.sum(axis=1))[:, None])
-                elif along == 1:
-                    add_clipped(w_acc, 0, tx0, np.convolve(wk[0], cv.k.sum(axis=0))[None, :])
-                else:
-                    cv.add_into(copy_tile(wk), w_acc, ty0, tx0)
-                if a_acc is not None:
-                    cv.add_into(copy_tile(wa), a_acc, ty0, tx0)
-                cv.add_stack_into(src, col, ty0, tx0)
-    for acc, col, a_acc, w_acc in zip(accs, cols, a_accs, w_accs):
-        np.maximum(w_acc, 1e-12, out=w_acc)
-        inv = np.reciprocal(w_acc, out=w_acc)
-        if backmost:
-            col *= inv[None]
+                    passes = [(wk, kk + np.float32(gk[0]) * mk)] if linear else [(wk, kk), (wk * gk, mk)]
+            passes_of.append([(wv, kn if a == 0 else kn.T) for wv, kn in passes])
+        # where the strip's blur lands in O along a (index j of its full convolution is E
+        # position p0 - s + j)
+        q0, q1 = max(p0 - s - smax, 0), min(p1 + s - smax, lo_a)
+        j0 = q0 - (p0 - s - smax)
+        for i, passes in enumerate(passes_of):
+            for wv, kn in passes:
+                w_accs[i][q0:q1] += np.convolve(wv, kn.sum(axis=1))[j0 : j0 + q1 - q0]
+        if is_small(*trimmed(passes_of[0][0][1]).shape):
+            for i, passes in enumerate(passes_of):
+                if near[i] is None:
+                    near[i] = np.zeros((C, lo_a, lo_u), np.float32)
+                for wv, kn in passes:
+                    cv = Convolver(float(ck), apertures[i], p1 - p0, le_u, k=kn)
+                    cv.add_stack_into(x[:, p0:p1] * wv[:, None], near[i], p0 - smax - s, -smax - s)
             continue
-        a_acc *= inv
-        inv = np.broadcast_to(inv, (oh, ow))
-        region = acc[:, oy0:oy1, ox0:ox1]
-        keep = 1.0 - a_acc
-        for ch in range(3):
-            col[ch] *= inv
-            region[ch] *= keep
-            region[ch] += col[ch]
+        if spec is None:
+            spec = sfft.rfft(x, n=n_u, axis=2)
+        n_k = sfft.next_fast_len(p1 - p0 + 2 * s)
+        fwd = {}  # per pass weight: the strip times it, transformed along a (n_k points)
+        for i, passes in enumerate(passes_of):
+            prod = None
+            for m, (wv, kn) in enumerate(passes):
+                if m not in fwd:
+                    buf = np.empty((C, n_k, spec.shape[2]), np.complex64)
+                    np.multiply(spec[:, p0:p1], wv[:, None], out=buf[:, : p1 - p0])
+                    buf[:, p1 - p0 :] = 0.0
+                    fwd[m] = sfft.fft(buf, axis=1, overwrite_x=True)
+                ks = _line_spectrum(kn, s, n_u, n_k)
+                if prod is not None:
+                    prod += fwd[m] * ks
+                elif i + 1 == len(passes_of):  # the last aperture: in place
+                    prod = np.multiply(fwd[m], ks, out=fwd[m])
+                else:
+                    prod = fwd[m] * ks
+            back = sfft.ifft(prod, axis=1, overwrite_x=True)
+            if accs[i] is None:
+                accs[i] = np.zeros((C, lo_a, spec.shape[2]), np.complex64)
+            accs[i][:, q0:q1] += back[:, j0 : j0 + q1 - q0]
+    del x, spec
+    out = []
+    for acc, sp, w_acc in zip(accs, near, w_accs):
+        res = np.zeros((C, lo_a, lo_u), np.float32) if sp is None else sp
+        for ch in range(C if acc is not None else 0):  # one channel at a time: memory
+            res[ch] += sfft.irfft(acc[ch], n=n_u, axis=1)[:, smax : smax + lo_u]
+        out.append((res, w_acc[:, None]) if a == 0 else (np.stack([cv2.transpose(ch) for ch in res]), w_acc[None, :]))
+    return out
+
+
+def _line_spectrum(k: np.ndarray, s: int, n_u: int, n_k: int) -> np.ndarray:
+    """The 2-D DFT of kernel k ((2s+1)^2, axes (a, u)) that `_scatter_line` multiplies by,
+    (n_k, n_u // 2 + 1): an FFT of n_k points along a with the kernel starting at index 0, and
+    a real FFT of n_u points along u with the kernel's centre at index 0 (its negative taps
+    wrapped to the end)."""
+    emb = np.zeros((2 * s + 1, n_u), np.float32)
+    emb[:, : s + 1] = k[:, s:]
+    emb[:, n_u - s :] = k[:, :s]
+    return sfft.fft(sfft.rfft(emb, axis=1), n=n_k, axis=0)
 
 
 def plane_box(plane, alpha: np.ndarray):
