@@ -101,12 +101,17 @@ def _apply(x, threshold, gain, power, out, axis, invert: bool):
     lo = tables[0] * (1.0 - 1e-6)
     for block in blocks:
         mx = _channel_max(block, -1)
-        idx = np.nonzero(mx > lo)  # index tuples also write through a non-contiguous `out`
-        if not idx[0].size:
+        hit = mx > lo
+        flat = np.flatnonzero(hit)
+        if not flat.size:
             continue
-        mv = mx[idx].astype(np.float64)
+        try:  # the block's pixels as rows (a view: whole rows of an image, interleaved or planar)
+            pix, idx = block.reshape(-1, block.shape[-1], copy=False), flat
+        except ValueError:  # a box inside wider rows: index tuples write through it
+            pix, idx = block, np.nonzero(hit)
+        mv = mx.reshape(-1)[flat].astype(np.float64)
         scale = (_root(mv, tables) / mv) if invert else _factor(mv, tables)
-        block[idx] = (block[idx] * scale[:, None]).astype(np.float32)
+        pix[idx] = (pix[idx] * scale[:, None]).astype(np.float32)
     return out
 
 
