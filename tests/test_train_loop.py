@@ -616,3 +616,22 @@ def test_a_hybrid_run_trains_resumes_bit_identically_and_renders_a_photo(setup, 
                  "--out", str(out)]) == 0
     img = cv2.imread(str(out))
     assert img.shape == (64, 96, 3) and not np.array_equal(img, cv2.imread(str(photo)))
+
+
+def test_the_hybrids_classical_input_is_the_same_render_in_either_colour_space():
+    """classical_input for [data] color = "linear" is the sRGB input's render in linear light
+    (decoded once, no encode and decode of the result), equal to decoding the "srgb" one."""
+    import json
+
+    from dofsynth.color import srgb_to_linear
+    from dofsynth.train.classical import classical_input
+
+    g = np.random.default_rng(np.random.SeedSequence(40))
+    d = np.tile(np.linspace(0.2, 0.9, 40, dtype=np.float32), (32, 1))
+    item = {"image": g.integers(0, 256, (32, 40, 3), dtype=np.uint8), "key": "k", "disparity": d, "focus": 0.5,
+            "max_coc": 6.0, "look": json.dumps({"aperture": {"kind": "disk"}, "options": {
+                "linear_light": True, "highlight": {"threshold": 0.9, "gain": 4.0, "power": 2.0}}})}
+    srgb, linear = classical_input(item, "srgb"), classical_input(item, "linear")
+    assert linear.dtype == np.float32 and linear.shape == (32, 40, 3)
+    np.testing.assert_allclose(linear, srgb_to_linear(srgb), atol=2e-6)
+    assert np.abs(linear - srgb).max() > 0.05  # a different colour space, not the same numbers

@@ -42,7 +42,8 @@ def classical_render(image: np.ndarray, disparity: np.ndarray, focus: float, max
 def classical_input(item: dict, color: str) -> np.ndarray:
     """The hybrid model's input for a decoded training crop (dofsynth.train.data.decode_crop: its
     image codes, corrupted disparity, focus, max_coc and look): the classical render from that
-    disparity, in the networks' colour space ([data] color: "srgb" or "linear")."""
-    out = classical_render(unit_float(item["image"], item["key"]), item["disparity"], item["focus"],
-                           item["max_coc"], json.loads(item["look"]))
-    return srgb_to_linear(out) if color == "linear" else out
+    disparity, in the networks' colour space ([data] color: "srgb" or "linear"; the codes are
+    decoded to linear light once, and a linear result is not encoded to sRGB and back)."""
+    image = unit_float(item["image"], item["key"])
+    return classical_render(srgb_to_linear(image) if color == "linear" else image, item["disparity"], item["focus"],
+                            item["max_coc"], json.loads(item["look"]), color)
