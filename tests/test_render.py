@@ -902,3 +902,26 @@ def test_ramp_scatter_equals_its_defining_sum(a):
                 ref = _ramp_scatter_reference(img, cut, line, a, focus, 12.0, ap)
                 out = render_planes([black(h, w), Plane(img, cut, d)], focus, 12.0, ap, planar=True)
                 np.testing.assert_allclose(out, ref[:3], atol=2e-5)  # over black: the normalized colour
+
+
+def test_a_ramp_rendered_one_channel_at_a_time_is_the_same(monkeypatch):
+    """Large frames take a ramp's channels one at a time (layered.LINE_GROUP_BYTES: memory); the
+    result is the same as all at once, for a vertical and a horizontal ramp, an opaque backmost
+    plane and a cutout with alpha, one aperture and the sub-aperture cells."""
+    from dofsynth.render import layered
+
+    g = rng(31)
+    h, w = 52, 60
+    img, cut = g.random((h, w, 3), dtype=np.float32), np.zeros((h, w), np.float32)
+    cut[10:40, 12:50] = g.random((30, 38), dtype=np.float32)
+    for line in (np.linspace(0.1, 0.9, h, dtype=np.float32)[:, None], np.linspace(0.9, 0.1, w, dtype=np.float32)[None, :]):
+        d = np.broadcast_to(line, (h, w))
+        scenes = ([opaque(img, d)], [black(h, w), Plane(img, cut, d)])
+        for method in ("layered", "subaperture"):
+            whole = [render_planes(p, 0.3, 16.0, method=method) for p in scenes]
+            monkeypatch.setattr(layered, "LINE_GROUP_BYTES", 1)
+            apart = [render_planes(p, 0.3, 16.0, method=method) for p in scenes]
+            monkeypatch.undo()
+            for x, y in zip(whole, apart):
+                np.testing.assert_allclose(x, y, atol=1e-6)
+                assert np.abs(x).max() > 0.1

@@ -160,43 +160,57 @@ def _composite_varying(accs, rgb, alpha, dmap, box, max_coc, focus, apertures, b
     c_e = cm[np.ix_(iy, ix)]  # compact along broadcast axes
     one = backmost and is_one(alpha)
 
-    def read(y0, y1, x0, x1):
-        """E[y0:y1, x0:x1]'s premultiplied colour and alpha (no alpha for an opaque backmost
-        plane), (C, h, w)."""
-        out = np.empty((3 if one else 4, y1 - y0, x1 - x0), np.float32)
-        for ch in range(3):
-            grab(rgb[:, :, ch], ey0 + y0, ey0 + y1, ex0 + x0, ex0 + x1, True, out[ch])
-        if not one:
-            grab(alpha, ey0 + y0, ey0 + y1, ex0 + x0, ex0 + x1, True, out[3])
-            out[:3] *= out[3]
+    def read(chans, y0, y1, x0, x1):
+        """E[y0:y1, x0:x1]'s premultiplied colour (channels 0-2) and alpha (3), the channels
+        `chans`, (len(chans), h, w)."""
+        out = np.empty((len(chans), y1 - y0, x1 - x0), np.float32)
+        a = None if one else grab(alpha, ey0 + y0, ey0 + y1, ex0 + x0, ex0 + x1, True)
+        for j, ch in enumerate(chans):
+            if ch == 3:
+                out[j] = a
+                continue
+            grab(rgb[:, :, ch], ey0 + y0, ey0 + y1, ex0 + x0, ex0 + x1, True, out[j])
+            if a is not None:
+                out[j] *= a
         return out
 
+    # the unnormalized sums over O: colour (and alpha unless the plane is the opaque backmost
+    # one), straight into acc for the backmost plane (acc is still black)
+    outs = [acc[:, oy0:oy1, ox0:ox1] if one else np.zeros((3 if one else 4, oy1 - oy0, ox1 - ox0), np.float32)
+            for acc in accs]
     along = 0 if c_e.shape[1] == 1 else (1 if c_e.shape[0] == 1 else None)
     scatter = _scatter_map if along is None else _scatter_line
-    results = scatter(read, (ey1 - ey0, ex1 - ex0), c_e, smax, apertures, level_step, level_ratio)
+    w_accs = scatter(read, (ey1 - ey0, ex1 - ex0), c_e, smax, apertures, outs, level_step, level_ratio)
     oh, ow = oy1 - oy0, ox1 - ox0
-    for acc, (res, w_acc) in zip(accs, results):
+    for acc, res, w_acc in zip(accs, outs, w_accs):
         np.maximum(w_acc, 1e-12, out=w_acc)
         inv = np.broadcast_to(np.reciprocal(w_acc, out=w_acc), (oh, ow))
-        region = acc[:, oy0:oy1, ox0:ox1]
         if one:
-            np.multiply(res, inv, out=region)
+            res *= inv
             continue
+        region = acc[:, oy0:oy1, ox0:ox1]
         keep = 1.0 - res[3] * inv
         for ch in range(3):
             region[ch] *= keep
             region[ch] += res[ch] * inv
 
 
-def _scatter_map(read, shape, c_e, smax, apertures, level_step, level_ratio):
+def _level_weight(k0: np.ndarray, f: np.ndarray, k: int) -> np.ndarray:
+    """Level k's linear weight of pixels with lower level index k0 and fraction f (float32)."""
+    return np.where(k0 == k, 1.0 - f, 0.0).astype(np.float32) + np.where(k0 == k - 1, f, 0.0).astype(np.float32)
+
+
+def _scatter_map(read, shape, c_e, smax, apertures, outs, level_step, level_ratio):
     """The level scatter of a 2-D CoC map c_e over E (`shape` (he, we)): for each aperture, the
-    unnormalized sum over levels of K_k * (w_k src) over O ((C, oh, ow)) and of K_k * w_k (the
-    weight, (oh, ow)), src = read(y0, y1, x0, x1) (C, h, w) of E. Each level over the box of the
-    pixels it weighs (per-row and per-column ranges), read when it is needed."""
+    unnormalized sum over levels of K_k * (w_k src) over O added into its `outs` (C, oh, ow),
+    src = read(channels, y0, y1, x0, x1) of E; returns the sums of K_k * w_k (the weights,
+    (oh, ow)). Each level over the box of the pixels it weighs (per-row and per-column ranges),
+    read when it is needed."""
     he, we = shape
     oh, ow = he - 2 * smax, we - 2 * smax
+    C = outs[0].shape[0]
     levels, k0c, fc = level_weights(c_e, level_step, level_ratio)
-    out = [(None, np.zeros((oh, ow), np.float32)) for _ in apertures]
+    w_accs = [np.zeros((oh, ow), np.float32) for _ in apertures]
     rlo, rhi = k0c.min(axis=1), k0c.max(axis=1) + 1
     clo, chi = k0c.min(axis=0), k0c.max(axis=0) + 1
     for k, ck in enumerate(levels):
@@ -210,27 +224,26 @@ def _scatter_map(read, shape, c_e, smax, apertures, level_step, level_ratio):
         x0, x1 = max(int(cols[0]), smax - s), min(int(cols[-1]) + 1, smax + ow + s)
         if y1 <= y0 or x1 <= x0:
             continue
-        ksub, fsub = k0c[y0:y1, x0:x1], fc[y0:y1, x0:x1]
-        wk = np.where(ksub == k, 1.0 - fsub, 0.0).astype(np.float32)
-        wk += np.where(ksub == k - 1, fsub, 0.0)
+        wk = _level_weight(k0c[y0:y1, x0:x1], fc[y0:y1, x0:x1], k)
         if not wk.any():
             continue
-        weighted = read(y0, y1, x0, x1)
+        weighted = read(range(C), y0, y1, x0, x1)
         weighted *= wk
         ty0, tx0 = y0 - s - smax, x0 - s - smax  # where the strip's blur lands in O
-        for i, (aperture, (acc, w_acc)) in enumerate(zip(apertures, out)):
-            if acc is None:
-                acc = np.zeros((weighted.shape[0], oh, ow), np.float32)
-                out[i] = acc, w_acc
+        for aperture, out, w_acc in zip(apertures, outs, w_accs):
             cv = Convolver(float(ck), aperture, y1 - y0, x1 - x0)
             cv.add_into(copy_tile(wk), w_acc, ty0, tx0)
-            cv.add_stack_into(weighted, acc, ty0, tx0)
-    return out
+            cv.add_stack_into(weighted, out, ty0, tx0)
+    return w_accs
 
 
-def _scatter_line(read, shape, c_e, smax, apertures, level_step, level_ratio):
+LINE_GROUP_BYTES = 64 << 20  # `_scatter_line` takes as many channels at once as fit in this (plane, spectra)
+
+
+def _scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_ratio):
     """`_scatter_map` of a CoC map that varies along one axis only (c_e (he, 1) or (1, we): a
-    ramp), with each pixel's disc weighted by the Jacobian of its parallax, 1 + p . grad(c).
+    ramp), with each pixel's disc weighted by the Jacobian of its parallax, 1 + p . grad(c); the
+    weights are returned as a column or row.
 
     The kernels are shift-invariant along the other axis u, so E is transformed along u once
     (a real FFT of n_u >= E's length points: a kernel centred on 0 there wraps onto no output
@@ -239,13 +252,12 @@ def _scatter_line(read, shape, c_e, smax, apertures, level_step, level_ratio):
     kernel's 2-D spectrum, the inverse. The levels' results add up in the u-spectrum and go back
     once. Small kernels (`fft.is_small`) are convolved directly instead, in space. The weight's
     blur is a 1-D convolution with the kernel's projection on a. The work is laid out
-    (C, a, u), u contiguous (the long transforms): a copy of E transposed for a horizontal ramp."""
+    (C, a, u), u contiguous (the long transforms): E transposed for a horizontal ramp; channels
+    go as many at a time as fit in LINE_GROUP_BYTES (E and two spectra each)."""
     a = 0 if c_e.shape[1] == 1 else 1  # the frame axis the CoC varies along
     u = 1 - a
-    x = read(0, shape[0], 0, shape[1])
-    if a == 1:
-        x = np.stack([cv2.transpose(ch) for ch in x])  # (C, a, u)
-    C, le_a, le_u = x.shape
+    C = outs[0].shape[0]
+    le_a, le_u = shape[a], shape[u]
     lo_a, lo_u = le_a - 2 * smax, le_u - 2 * smax  # O's size
     line = c_e[:, 0] if a == 0 else c_e[0]
     levels, k0, f = level_weights(line, level_step, level_ratio)
@@ -253,10 +265,7 @@ def _scatter_line(read, shape, c_e, smax, apertures, level_step, level_ratio):
     g = np.clip(np.gradient(line.astype(np.float64)), -MAX_SLOPE, MAX_SLOPE).astype(np.float32) if line.size > 1 else None
     g = g if g is not None and np.any(g) else None
     linear = g is not None and float(g.max() - g.min()) <= 1e-6 * max(float(np.abs(g).max()), 1e-6)
-    n_u = sfft.next_fast_len(le_u, real=True)
-    spec = None  # E's spectrum along u, (C, le_a, n_u // 2 + 1), once a level needs it
-    accs = [None] * len(apertures)  # per aperture: the FFT levels' sum in the u-spectrum
-    near = [None] * len(apertures)  # per aperture: the small kernels' sum in space, (C, lo_a, lo_u)
+    plans = []  # per level: (radius, s, p0, p1, q0, q1, j0, small, passes per aperture)
     w_accs = [np.zeros(lo_a, np.float32) for _ in apertures]
     for k, ck in enumerate(levels):
         on = np.flatnonzero((k0 == k) | (k0 == k - 1))
@@ -266,8 +275,7 @@ def _scatter_line(read, shape, c_e, smax, apertures, level_step, level_ratio):
         p0, p1 = max(int(on[0]), smax - s), min(int(on[-1]) + 1, smax + lo_a + s)  # pixels within s of O
         if p1 <= p0:
             continue
-        kk_, ff = k0[p0:p1], f[p0:p1]
-        wk = np.where(kk_ == k, 1.0 - ff, 0.0).astype(np.float32) + np.where(kk_ == k - 1, ff, 0.0).astype(np.float32)
+        wk = _level_weight(k0[p0:p1], f[p0:p1], k)
         if not wk.any():
             continue
         gk = None if g is None else g[p0:p1]
@@ -287,48 +295,65 @@ def _scatter_line(read, shape, c_e, smax, apertures, level_step, level_ratio):
         # position p0 - s + j)
         q0, q1 = max(p0 - s - smax, 0), min(p1 + s - smax, lo_a)
         j0 = q0 - (p0 - s - smax)
-        for i, passes in enumerate(passes_of):
+        for w_acc, passes in zip(w_accs, passes_of):
             for wv, kn in passes:
-                w_accs[i][q0:q1] += np.convolve(wv, kn.sum(axis=1))[j0 : j0 + q1 - q0]
-        if is_small(*trimmed(passes_of[0][0][1]).shape):
-            for i, passes in enumerate(passes_of):
-                if near[i] is None:
-                    near[i] = np.zeros((C, lo_a, lo_u), np.float32)
+                w_acc[q0:q1] += np.convolve(wv, kn.sum(axis=1))[j0 : j0 + q1 - q0]
+        small = is_small(*trimmed(passes_of[0][0][1]).shape)
+        plans.append((float(ck), s, p0, p1, q0, q1, j0, small, passes_of))
+    n_u = sfft.next_fast_len(le_u, real=True)
+    nu2 = n_u // 2 + 1
+    group = int(np.clip(LINE_GROUP_BYTES // (le_a * le_u * 4 + (le_a + lo_a) * nu2 * 8), 1, C))
+    for c0 in range(0, C, group):
+        chans = range(c0, min(c0 + group, C))
+        x = read(chans, 0, shape[0], 0, shape[1])
+        if a == 1:  # (G, a, u)
+            x = np.stack([cv2.transpose(ch) for ch in x])
+        # the group's sums in space, (G, lo_a, lo_u): the output itself for a vertical ramp
+        res = [out[c0 : c0 + len(chans)] if a == 0 else np.zeros((len(chans), lo_a, lo_u), np.float32) for out in outs]
+        for ck, s, p0, p1, q0, q1, j0, small, passes_of in plans:
+            if not small:
+                continue
+            for aperture, passes, r in zip(apertures, passes_of, res):
                 for wv, kn in passes:
-                    cv = Convolver(float(ck), apertures[i], p1 - p0, le_u, k=kn)
-                    cv.add_stack_into(x[:, p0:p1] * wv[:, None], near[i], p0 - smax - s, -smax - s)
-            continue
-        if spec is None:
-            spec = sfft.rfft(x, n=n_u, axis=2)
-        n_k = sfft.next_fast_len(p1 - p0 + 2 * s)
-        fwd = {}  # per pass weight: the strip times it, transformed along a (n_k points)
-        for i, passes in enumerate(passes_of):
-            prod = None
-            for m, (wv, kn) in enumerate(passes):
-                if m not in fwd:
-                    buf = np.empty((C, n_k, spec.shape[2]), np.complex64)
-                    np.multiply(spec[:, p0:p1], wv[:, None], out=buf[:, : p1 - p0])
-                    buf[:, p1 - p0 :] = 0.0
-                    fwd[m] = sfft.fft(buf, axis=1, overwrite_x=True)
-                ks = _line_spectrum(kn, s, n_u, n_k)
-                if prod is not None:
-                    prod += fwd[m] * ks
-                elif i + 1 == len(passes_of):  # the last aperture: in place
-                    prod = np.multiply(fwd[m], ks, out=fwd[m])
-                else:
-                    prod = fwd[m] * ks
-            back = sfft.ifft(prod, axis=1, overwrite_x=True)
-            if accs[i] is None:
-                accs[i] = np.zeros((C, lo_a, spec.shape[2]), np.complex64)
-            accs[i][:, q0:q1] += back[:, j0 : j0 + q1 - q0]
-    del x, spec
-    out = []
-    for acc, sp, w_acc in zip(accs, near, w_accs):
-        res = np.zeros((C, lo_a, lo_u), np.float32) if sp is None else sp
-        for ch in range(C if acc is not None else 0):  # one channel at a time: memory
-            res[ch] += sfft.irfft(acc[ch], n=n_u, axis=1)[:, smax : smax + lo_u]
-        out.append((res, w_acc[:, None]) if a == 0 else (np.stack([cv2.transpose(ch) for ch in res]), w_acc[None, :]))
-    return out
+                    cv = Convolver(ck, aperture, p1 - p0, le_u, k=kn)
+                    cv.add_stack_into(x[:, p0:p1] * wv[:, None], r, p0 - smax - s, -smax - s)
+        spec = None  # the group's spectrum along u, (G, le_a, nu2), once a level needs it
+        accs = [None] * len(apertures)  # per aperture: the FFT levels' sum in the u-spectrum
+        for ck, s, p0, p1, q0, q1, j0, small, passes_of in plans:
+            if small:
+                continue
+            if spec is None:
+                spec = sfft.rfft(x, n=n_u, axis=2)
+            n_k = sfft.next_fast_len(p1 - p0 + 2 * s)
+            fwd = {}  # per pass weight: the strip times it, transformed along a (n_k points)
+            for i, passes in enumerate(passes_of):
+                prod = None
+                for m, (wv, kn) in enumerate(passes):
+                    if m not in fwd:
+                        buf = np.empty((len(chans), n_k, nu2), np.complex64)
+                        np.multiply(spec[:, p0:p1], wv[:, None], out=buf[:, : p1 - p0])
+                        buf[:, p1 - p0 :] = 0.0
+                        fwd[m] = sfft.fft(buf, axis=1, overwrite_x=True)
+                    ks = _line_spectrum(kn, s, n_u, n_k)
+                    if prod is not None:
+                        prod += fwd[m] * ks
+                    elif i + 1 == len(passes_of):  # the last aperture: in place
+                        prod = np.multiply(fwd[m], ks, out=fwd[m])
+                    else:
+                        prod = fwd[m] * ks
+                back = sfft.ifft(prod, axis=1, overwrite_x=True)
+                if accs[i] is None:
+                    accs[i] = np.zeros((len(chans), lo_a, nu2), np.complex64)
+                accs[i][:, q0:q1] += back[:, j0 : j0 + q1 - q0]
+        del x, spec
+        for i, (acc, r) in enumerate(zip(accs, res)):
+            for j in range(len(chans) if acc is not None else 0):  # one channel at a time: memory
+                r[j] += sfft.irfft(acc[j], n=n_u, axis=1)[:, smax : smax + lo_u]
+            accs[i] = None
+            if a == 1:
+                for j, ch in enumerate(chans):
+                    outs[i][ch] += cv2.transpose(r[j])
+    return [w[:, None] if a == 0 else w[None, :] for w in w_accs]
 
 
 def _line_spectrum(k: np.ndarray, s: int, n_u: int, n_k: int) -> np.ndarray:
