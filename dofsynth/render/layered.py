@@ -176,7 +176,7 @@ def _composite_varying(accs, rgb, alpha, dmap, box, max_coc, focus, apertures, b
 
     # the unnormalized sums over O: colour (and alpha unless the plane is the opaque backmost
     # one), straight into acc for the backmost plane (acc is still black)
-    outs = [acc[:, oy0:oy1, ox0:ox1] if one else np.zeros((3 if one else 4, oy1 - oy0, ox1 - ox0), np.float32)
+    outs = [acc[:, oy0:oy1, ox0:ox1] if one else np.zeros((4, oy1 - oy0, ox1 - ox0), np.float32)
             for acc in accs]
     along = 0 if c_e.shape[1] == 1 else (1 if c_e.shape[0] == 1 else None)
     scatter = _scatter_map if along is None else _scatter_line
