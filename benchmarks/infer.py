@@ -4,8 +4,10 @@ in a fresh process (its own peak RSS), with the model as `dofsynth render --mode
 module, whole frames), and the largest difference between the two results.
 
     .venv/bin/python benchmarks/infer.py [--config recipes/train-deeplens.toml] [--threads 2]
+    .venv/bin/python benchmarks/infer.py --config recipes/train-learn-real.toml [--gate]   # the hybrid
 
-Random weights of the config's model (batch normalisation given random statistics, so folding
+Random weights of the config's model (the paper's networks, or the hybrid: its classical render,
+its U-Net at full resolution and, with --gate, the edge weight of `[model] gate = "edges"`) (batch normalisation given random statistics, so folding
 it is exercised); a random photo and a left-to-right disparity ramp, focus 0.5. Peak RSS is the
 process's own maximum (VmHWM), model, photo and result included.
 """
@@ -20,7 +22,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def measure(config: str, side: int, threads: int, prepared: bool) -> dict:
+def measure(config: str, side: int, threads: int, prepared: bool, gate: bool = False) -> dict:
     """One render in this process: {"cpu", "wall", "peak_mib", "out"} (out: the result)."""
 
     import time
@@ -31,13 +33,23 @@ def measure(config: str, side: int, threads: int, prepared: bool) -> dict:
 
     from dofsynth.generate.worker import peak_rss_mb
     from dofsynth.train import infer
-    from dofsynth.train.config import load
-    from dofsynth.train.models import DeepLensNet
+    from dofsynth.train.checkpoint import build_model
+    from dofsynth.train.config import load, replace
 
     torch.set_num_threads(threads)
     cfg = load(config)
+    if gate:
+        cfg = replace(cfg, "model", gate="edges")
+    if cfg.model.coc_ref <= 0 or cfg.infer.low_res_side <= 0:  # what training fills in from its data
+        from dofsynth.recipe import load_recipe
+
+        recipe = load_recipe(ROOT / "recipes" / "learn-real.toml")  # the data recipes/train-learn-real.toml trains on
+        cfg = replace(cfg, "model", coc_ref=cfg.model.coc_ref or float(recipe.focus.max_coc[1]))
+        cfg = replace(cfg, "infer", low_res_side=cfg.infer.low_res_side or recipe.size // 2 ** cfg.data.levels)
     torch.manual_seed(0)
-    model = DeepLensNet(cfg.model).eval()
+    model = build_model(cfg).eval()
+    if hasattr(model, "head"):  # the hybrid's last layer starts at 0: give its correction a value
+        nn.init.uniform_(model.head.weight, -0.01, 0.01)
     for m in model.modules():
         if isinstance(m, nn.BatchNorm2d):
             m.running_mean.uniform_(-0.1, 0.1), m.running_var.uniform_(0.5, 1.5), m.weight.data.uniform_(0.8, 1.2)
@@ -58,12 +70,13 @@ def measure(config: str, side: int, threads: int, prepared: bool) -> dict:
             "peak_mib": peak_rss_mb(), "out": out}
 
 
-def _child(config: str, side: int, threads: int, prepared: bool, save: str) -> dict:
+def _child(config: str, side: int, threads: int, prepared: bool, save: str, gate: bool = False) -> dict:
     code = ("import sys, json, numpy as np; sys.path.insert(0, sys.argv[1]); import infer as b; "
-            "r = b.measure(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == '1'); "
+            "r = b.measure(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == '1', sys.argv[7] == '1'); "
             "np.save(sys.argv[6], r.pop('out')); print(json.dumps(r))")
     res = subprocess.run([sys.executable, "-c", code, str(ROOT / "benchmarks"), config, str(side), str(threads),
-                          "1" if prepared else "0", save], capture_output=True, text=True, cwd=ROOT)
+                          "1" if prepared else "0", save, "1" if gate else "0"], capture_output=True, text=True,
+                         cwd=ROOT)
     if res.returncode:
         raise SystemExit(res.stderr[-3000:])
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -78,6 +91,7 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=str(ROOT / "recipes" / "train-deeplens.toml"))
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048])
+    ap.add_argument("--gate", action="store_true", help='the hybrid with [model] gate = "edges"')
     args = ap.parse_args(argv)
     print(f"| size | model | CPU s | wall s | peak MiB | max difference |\n|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
@@ -85,7 +99,7 @@ def main(argv=None) -> int:
             rows = {}
             for prepared in (False, True):
                 save = str(Path(tmp) / f"{side}-{int(prepared)}.npy")
-                rows[prepared] = (_child(args.config, side, args.threads, prepared, save), np.load(save))
+                rows[prepared] = (_child(args.config, side, args.threads, prepared, save, args.gate), np.load(save))
             diff = float(np.abs(rows[True][1] - rows[False][1]).max())
             for prepared, name in ((False, "as trained, whole frames"), (True, "render --model (for_inference, bands)")):
                 r = rows[prepared][0]

@@ -173,3 +173,28 @@ def test_a_tiny_model_overfits_a_small_batch():
         losses.append(loss.item())
     assert np.isfinite(losses).all()
     assert min(losses[-10:]) < losses[0] / 5, (losses[0], losses[-10:])
+
+
+@pytest.mark.parametrize("depth", [1, 3])
+def test_the_hybrids_correction_in_bands_of_rows_is_the_whole_frames(depth):
+    """`render --model` runs the hybrid's full-resolution U-Net in bands of rows (memory); each
+    band reads `unet_reach` more rows on either side, so the result is the whole frame's, for a
+    height that is not a multiple of the U-Net's stride; with too small a margin it is not."""
+    from dofsynth.train import models
+    from dofsynth.train.models import HybridNet
+
+    torch.manual_seed(depth)
+    model = HybridNet(ModelConfig(kind="hybrid", kp_width=8, kp_depth=depth)).eval()
+    torch.nn.init.normal_(model.head.weight, std=0.5)
+    x = torch.rand(1, 7, 213, 40)
+    with torch.no_grad():
+        whole = model._correction(x, None)
+        for rows in (8, 50):
+            torch.testing.assert_close(model._correction(x, rows), whole, atol=1e-6, rtol=0)
+        reach = models.unet_reach
+        models.unet_reach = lambda d: 1
+        try:
+            assert (model._correction(x, 8) - whole).abs().max() > 2e-5
+        finally:
+            models.unet_reach = reach
+    assert whole.abs().max() > 0.05

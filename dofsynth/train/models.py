@@ -350,13 +350,43 @@ class HybridNet(nn.Module):
         sizes = size_chain(tuple(image.shape[-2:]), steps) if sizes is None else sizes
         _check(image, 3, "image"), _check(classical, 3, "classical", image.shape[-2:])
         signed = signed_hi if signed_hi is not None else bilinear(signed_lo, tuple(image.shape[-2:]))
-        correction = self.head(self.body(torch.cat([image, classical, signed], dim=1)))
+        correction = self._correction(torch.cat([image, classical, signed], dim=1), rows)
         if self.gate:
             correction = correction * edge_weight(signed_hi, coc_px)
         result = classical + correction
         if self.identity and signed_hi is not None:
             result = torch.where(untouched(signed_hi, coc_px), image, result)
         return area_resize(result, sizes[0]), result
+
+    def _correction(self, x: torch.Tensor, rows: int | None) -> torch.Tensor:
+        """The U-Net's correction of its input x (B, 7, H, W), edge-padded to a multiple of the
+        U-Net's stride (so each level is exactly half the one above, as in training's crops);
+        with `rows`, in bands of about that many rows (a multiple of the stride, at least 8x
+        `unet_reach`), each computed with `unet_reach` more rows on either side, which its
+        outputs do not depend on: the same values up to float rounding, the U-Net's activations
+        for one band instead of a frame."""
+        h, w = x.shape[-2:]
+        depth = len(self.body.down)
+        stride = 2**depth
+        if h % stride or w % stride:  # every level exactly half the one above, as in training's crops
+            x = F.pad(x, (0, -w % stride, 0, -h % stride), mode="replicate")
+        H = x.shape[-2]
+        reach = -(-unet_reach(depth) // stride) * stride
+        step = -(-max(rows or H, 8 * reach) // stride) * stride
+        if step >= H:
+            return self.head(self.body(x))[:, :, :h, :w]
+        out = x.new_empty((x.shape[0], 3, h, w))
+        for r0 in range(0, h, step):
+            r1 = min(r0 + step, h)
+            a, b = max(r0 - reach, 0), min(r1 + reach, H)
+            out[:, :, r0:r1] = self.head(self.body(x[:, :, a:b]))[:, :, r0 - a : r1 - a, :w]
+        return out
+
+
+def unet_reach(depth: int) -> int:
+    """Rows of the input one output row of a UNet of `depth` levels depends on: 2 from the stem,
+    2**(k-1) + 2**k on the way down to each level k and 2**k + 2**(k-1) on the way back up."""
+    return 2 + 6 * (2**depth - 1)
 
 
 def _check(x: torch.Tensor, channels: int, name: str, size=None) -> None:
