@@ -23,12 +23,12 @@ under an hour.
    (the hybrid model, 128 px crops, trained on the depth errors of `eval --depth realistic`),
    the paper's networks on the same data, the hybrid in linear light ([data] color), the
    hybrid trained for 1200 steps instead of 400, and so trained with its correction gated to
-   the band around the given depth's edges ([model] gate = "edges"), each trained with --seeds
-   seeds; one table on
+   the band around the given depth's edges ([model] gate = "edges"), also for 2400 steps, each
+   trained with --seeds seeds; one table on
    the test split, everyone given the same realistic depth: PSNR and SSIM overall, in the edge
    band, outside it and where no blur reaches (the target is the input), the mean of the seeds
-   and their range. About 4 minutes per run of 400 steps, 11 of 1200 (2 cores), 1.5 hours in
-   all.
+   and their range. About 4 minutes per run of 400 steps, 11 of 1200, 22 of 2400 (2 cores),
+   2.5 hours in all.
 Every size (image, crops, low resolution, steps, batch, parameters) is printed. Runs go to
 OUT/runs/<config hash>; a finished run is reused (delete it to train again).
 """
@@ -171,6 +171,7 @@ REAL_CONFIG = ROOT / "recipes" / "train-learn-real.toml"
 DEEPLENS = {"kind": "deeplens", "feat_channels": 8, "kp_width": 16, "kp_depth": 3,
             "up_width": 16}
 LONG = 1200  # steps of the longer hybrid runs
+LONGER = 2400  # steps of the longest gated one
 METRICS = [("psnr", "PSNR"), ("ssim", "SSIM")]
 REGION_NAMES = [("", "overall"), ("_edge", "edge band"), ("_out", "outside it"), ("_same", "target = input")]
 
@@ -200,8 +201,9 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "") ->
     kinds = {"hybrid": base, "deeplens (paper networks)": replace(base, "model", **DEEPLENS),
              "hybrid, color = linear": replace(base, "data", color="linear"),
              f"hybrid, {LONG} steps": replace(base, "train", max_steps=LONG, checkpoint_interval=LONG),
-             f"hybrid gated to the edge bands, {LONG} steps": replace(replace(base, "model", gate="edges"), "train",
-                                                                     max_steps=LONG, checkpoint_interval=LONG)}
+             **{f"hybrid gated to the edge bands, {n} steps": replace(replace(base, "model", gate="edges"), "train",
+                                                                      max_steps=n, checkpoint_interval=n)
+                for n in (LONG, LONGER)}}
     if only:
         kinds = {k: v for k, v in kinds.items() if only in k}
     tables: dict[str, list[dict]] = {}
