@@ -182,7 +182,7 @@ def level_errors() -> None:
     from pathlib import Path
 
     from dofsynth.io import load_linear_rgba
-    from dofsynth.render.layered import level_grid
+    from dofsynth.render.levels import level_grid
 
     photo = Path(__file__).resolve().parents[2] / "shared" / "assets" / "bg" / "kodak_kodim01.png"
     img, _ = load_linear_rgba(photo)

@@ -8,7 +8,8 @@ from dofsynth.optics import Disk, Polygon, kernel, support_radius
 from dofsynth.render import render_planes
 from dofsynth.render.cateye import EDGE_PX
 from dofsynth.render.fft import Convolver, Tiling, convolve
-from dofsynth.render.layered import LEVEL_RATIO, level_grid, level_weights
+from dofsynth.render.layered import LEVEL_RATIO
+from dofsynth.render.levels import level_grid, level_weights
 from dofsynth.render.planes import Plane
 
 
@@ -905,10 +906,10 @@ def test_ramp_scatter_equals_its_defining_sum(a):
 
 
 def test_a_ramp_rendered_one_channel_at_a_time_is_the_same(monkeypatch):
-    """Large frames take a ramp's channels one at a time (layered.LINE_GROUP_BYTES: memory); the
+    """Large frames take a ramp's channels one at a time (scatter.LINE_GROUP_BYTES: memory); the
     result is the same as all at once, for a vertical and a horizontal ramp, an opaque backmost
     plane and a cutout with alpha, one aperture and the sub-aperture cells."""
-    from dofsynth.render import layered
+    from dofsynth.render import scatter
 
     g = rng(31)
     h, w = 52, 60
@@ -919,7 +920,7 @@ def test_a_ramp_rendered_one_channel_at_a_time_is_the_same(monkeypatch):
         scenes = ([opaque(img, d)], [black(h, w), Plane(img, cut, d)])
         for method in ("layered", "subaperture"):
             whole = [render_planes(p, 0.3, 16.0, method=method) for p in scenes]
-            monkeypatch.setattr(layered, "LINE_GROUP_BYTES", 1)
+            monkeypatch.setattr(scatter, "LINE_GROUP_BYTES", 1)
             apart = [render_planes(p, 0.3, 16.0, method=method) for p in scenes]
             monkeypatch.undo()
             for x, y in zip(whole, apart):

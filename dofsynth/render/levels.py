@@ -1,0 +1,65 @@
+"""The CoC levels of a varying-disparity plane (the layered renderer's normalized scatter): one
+grid fixed in CoC radius (px), shared by every plane of every sample, and each pixel's linear
+weights between its two neighbouring levels (docs/rendering.md)."""
+from __future__ import annotations
+
+import numpy as np
+
+_GRIDS: dict[tuple[float, float], np.ndarray] = {}  # (level_step, level_ratio) -> its levels >= 0 so far
+
+
+def _positive_levels(level_step: float, level_ratio: float, reach: float) -> np.ndarray:
+    """The grid's levels >= 0 (px), from 0 to the first one >= reach: g_0 = 0 and
+    g_{k+1} = g_k + max(level_step, level_ratio * g_k); computed once per spacing and extended
+    as larger radii come (the same float values every time)."""
+    key = (float(level_step), float(level_ratio))
+    grid = _GRIDS.get(key)
+    if grid is None or grid[-1] < reach:
+        levels = [0.0] if grid is None else grid.tolist()
+        while levels[-1] < reach:
+            c = levels[-1]
+            levels.append(c + max(level_step, level_ratio * c))
+        grid = _GRIDS[key] = np.array(levels)
+    return grid
+
+
+def level_grid(cmin: float, cmax: float, level_step: float, level_ratio: float = 0.0) -> np.ndarray:
+    """CoC levels (pixels) covering [c_min, c_max], taken from one grid that every plane of every
+    sample shares (so each level's kernels are computed once per process and cached): 0 and
+    +-g_k, g_{k+1} = g_k + max(level_step, level_ratio * g_k), from the last level <= c_min to
+    the first >= c_max. With level_ratio 0 the step is fixed; above 0 it grows with the radius,
+    where neighbouring kernels differ relatively less. A constant map (c_min = c_max) is the one
+    level c_min itself."""
+    if cmax <= cmin:
+        return np.array([float(cmin)])
+    pos = _positive_levels(level_step, level_ratio, max(abs(cmin), abs(cmax)))
+    grid = np.concatenate([-pos[:0:-1], pos])
+    lo = int(np.searchsorted(grid, cmin, side="right")) - 1  # the last level <= c_min
+    hi = int(np.searchsorted(grid, cmax, side="left"))  # the first level >= c_max
+    return grid[lo : hi + 1]
+
+
+def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0):
+    """CoC levels (pixels, `level_grid`) covering [c_min, c_max], and for each pixel its lower
+    level index k0 and the weight f of level k0+1 (1 - f goes to level k0), linear in the
+    pixel's CoC between the two levels.
+
+    The levels lie on a grid fixed in CoC, so the result is continuous in focus, max_coc and
+    the map (a level enters or leaves with weight 0) except where a map becomes constant: that
+    is a single level, the constant-plane result, which a map varying by a hair differs from by
+    the interpolation between its two grid levels (docs/rendering.md bounds it).
+    """
+    cmin, cmax = float(cmap.min()), float(cmap.max())
+    levels = level_grid(cmin, cmax, level_step, level_ratio)
+    if levels.size == 1:
+        return levels, np.zeros(cmap.shape, np.int32), np.zeros(cmap.shape, np.float32)
+    n = levels.size
+    c = cmap.astype(np.float64)
+    k0 = np.clip(np.searchsorted(levels, c, side="right") - 1, 0, n - 2).astype(np.int32)
+    f = np.clip((c - levels[k0]) / (levels[k0 + 1] - levels[k0]), 0.0, 1.0).astype(np.float32)
+    return levels, k0, f
+
+
+def level_weight(k0: np.ndarray, f: np.ndarray, k: int) -> np.ndarray:
+    """Level k's linear weight of pixels with lower level index k0 and fraction f (float32)."""
+    return np.where(k0 == k, 1.0 - f, 0.0).astype(np.float32) + np.where(k0 == k - 1, f, 0.0).astype(np.float32)
