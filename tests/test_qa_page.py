@@ -55,6 +55,16 @@ def _src(driver) -> str:
     return driver.find_element("id", "view-img").get_attribute("src").rsplit("/", 1)[-1]
 
 
+def _loaded_height(driver, img, timeout: float = 60.0):
+    """The image's natural height once it has loaded (images load asynchronously: waited for,
+    generously, so a busy machine passes too), or what it is at the timeout."""
+    loaded = lambda: _js(driver, "return arguments[0].complete && arguments[0].naturalHeight", img)  # noqa: E731
+    deadline = time.monotonic() + timeout
+    while not loaded() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return loaded()
+
+
 def _key(driver, key: str) -> None:
     from selenium.webdriver.common.action_chains import ActionChains
 
@@ -70,11 +80,7 @@ def test_the_page_loads_without_console_errors_and_its_thumbnails_load(browser, 
     first = rows[0].find_elements("css selector", "img")
     browser.execute_script("window.scrollTo(0, document.body.scrollHeight)")   # lazy thumbnails load
     for img in first:  # lazy images load after the scroll, asynchronously: wait (generously) for each
-        loaded = lambda: _js(browser, "return arguments[0].complete && arguments[0].naturalHeight", img)  # noqa: E731
-        deadline = time.monotonic() + 60
-        while loaded() != 64 and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert loaded() == 64
+        assert _loaded_height(browser, img) == 64
         assert img.get_attribute("src").endswith(".t.jpg")
     assert "5 of 5 shown" in browser.find_element("id", "count").text
 
@@ -117,8 +123,7 @@ def test_the_focus_slider_walks_the_focus_sweep(browser, page):
     key = seen[0].split(".")[0]
     assert seen == [f"{key}.sweep.0.webp", f"{key}.sweep.2.webp", f"{key}.sweep.4.webp"]
     assert "focus sweep: focus 1.00" in browser.find_element("id", "label").text
-    loaded = _js(browser, "const i = document.getElementById('view-img'); return i.complete && i.naturalWidth")
-    assert loaded == 64
+    assert _loaded_height(browser, browser.find_element("id", "view-img")) == 64
 
 
 def test_filters_hide_rows(browser, page):
