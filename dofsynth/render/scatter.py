@@ -131,10 +131,13 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
         for ck, s, p0, p1, q0, q1, j0, small, passes_of in plans:
             if not small:
                 continue
+            strips = {}  # per pass weight: the strip times it (the same for every aperture)
             for aperture, passes, r in zip(apertures, passes_of, res):
-                for wv, kn in passes:
+                for m, (wv, kn) in enumerate(passes):
+                    if m not in strips:
+                        strips[m] = x[:, p0:p1] * wv[:, None]
                     cv = Convolver(ck, aperture, p1 - p0, le_u, k=kn)
-                    cv.add_stack_into(x[:, p0:p1] * wv[:, None], r, p0 - smax - s, -smax - s)
+                    cv.add_stack_into(strips[m], r, p0 - smax - s, -smax - s)
         spec = None  # the group's spectrum along u, (G, le_a, nu2), once a level needs it
         accs = [None] * len(apertures)  # per aperture: the FFT levels' sum in the u-spectrum
         for ck, s, p0, p1, q0, q1, j0, small, passes_of in plans:
