@@ -4,8 +4,8 @@ All images in files are sRGB-encoded; every blur and composite happens in linear
 (float32). Functions here are pure and vectorised over any array shape.
 
 Fast paths (docs/rendering.md, "Colour conversions"): 8-bit sRGB decodes through a 256-entry
-table (`srgb8_to_linear`), and linear light encodes straight to 8-bit sRGB through a two-level
-table (`linear_to_srgb8`) that is *exact*: it returns the round-half-up quantisation of the
+table (`srgb8_to_linear`), and linear light encodes straight to 8-bit sRGB through tables
+indexed by the float's top 16 bits (`linear_to_srgb8`) that are *exact*: it returns the round-half-up quantisation of the
 float64 sRGB formula for every float32 input, with no power function evaluated per pixel.
 """
 from __future__ import annotations
@@ -81,36 +81,38 @@ def srgb8_to_linear(u8: np.ndarray) -> np.ndarray:
     return SRGB8_TO_LINEAR[u8]
 
 
-def _encode_tables(bins: int):
-    """Thresholds and the two-level table of `linear_to_srgb8`.
+def _encode_tables():
+    """Thresholds and the table of `linear_to_srgb8`, indexed by the top 16 bits of a float32.
 
     Code k+1 starts at the linear value T_k where the sRGB value reaches (k + 0.5) / 255 (round
     half up). T_k (float64) is moved up to the nearest float32, so for a float32 x the test
-    `x >= T32_k` is exactly `x >= T_k`. Bin i of width 1/bins holds at most one threshold (their
-    smallest gap, at the linear toe, is 1 / (12.92 * 255) > 1 / bins): `base[i]` is the code at
-    the bin's start and `step[i]` the threshold inside it times `bins` (exact: a power of two;
-    +inf when there is none).
+    `x >= T32_k` is exactly `x >= T_k`. The float32 values sharing their top 16 bits (sign,
+    exponent, 7 mantissa bits) form a bin no wider than 1/128 of its magnitude, which holds at
+    most one threshold (their gaps are wider: 3.0e-4 at the linear toe, 0.9 % of x at 1;
+    asserted): `base[i]` is the code of the bin's smallest value and `step[i]` the threshold
+    inside it (NaN when there is none, which no comparison passes). Negative values and NaN
+    have code 0, values from 1 code 255 (+inf shares its bin with NaNs: it is taken as 2).
     """
     t64 = np.array([srgb_decode_exact((k + 0.5) / 255.0) for k in range(255)])
     t32 = t64.astype(np.float32)
     t32 = np.where(t32.astype(np.float64) < t64, np.nextafter(t32, np.float32(2.0)), t32).astype(np.float32)
-    assert np.min(np.diff(t64)) > 1.0 / bins
-    starts = (np.arange(bins + 1) / bins).astype(np.float32)  # exact: bins is a power of two
-    base = np.searchsorted(t32, starts, side="right").astype(np.uint8)  # thresholds <= start
-    step = np.full(bins + 1, np.inf, np.float32)
-    inside = np.searchsorted(t32, starts, side="right")  # first threshold > start
-    ok = inside < 255
-    nxt = np.where(ok, t32[np.minimum(inside, 254)], 2.0)
-    ok &= nxt < starts + np.float32(1.0 / bins)
-    step[ok] = nxt[ok] * np.float32(bins)
+    top = np.arange(1 << 16, dtype=np.uint32)
+    finite = top < 0x7F80  # non-negative and finite (0x7F80: +inf and NaN; from 0x8000: negative)
+    first = (top[finite] << 16).view(np.float32)  # each bin's smallest and largest value
+    last = ((top[finite] << 16) | 0xFFFF).view(np.float32)
+    below = np.searchsorted(t32, first, side="right")  # thresholds <= its smallest value
+    inside = np.searchsorted(t32, last, side="right") - below
+    assert inside.max() <= 1
+    base = np.zeros(1 << 16, np.uint8)
+    base[: finite.sum()] = below
+    step = np.full(1 << 16, np.nan, np.float32)
+    one = np.flatnonzero(inside == 1)
+    step[one] = t32[below[one]]
     return t32, base, step
 
 
-ENCODE_BINS = 4096
-SRGB8_THRESHOLDS, _BASE, _STEP = _encode_tables(ENCODE_BINS)
+SRGB8_THRESHOLDS, _BASE, _STEP = _encode_tables()
 
-
-_CHUNK = 1 << 16  # elements per block: small temporaries, cache-resident tables
 
 
 def linear_to_srgb8(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -118,8 +120,9 @@ def linear_to_srgb8(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
 
     Exactly `floor(srgb(x) * 255 + 0.5)` with the float64 sRGB formula, for every float32 x
     (x is cast to float32 first): the code is the number of thresholds `SRGB8_THRESHOLDS` <= x,
-    found with two table lookups. Monotone in x. Works in blocks of 64K values, so the
-    temporaries stay small whatever the image size. `out` (uint8, x's shape) is filled if given.
+    found with two look-ups in tables indexed by the top 16 bits of x and one compare. Monotone
+    in x. Works in blocks of 64K values, so the temporaries stay small whatever the image size.
+    `out` (uint8, x's shape) is filled if given.
     """
     x = np.asarray(x, dtype=np.float32)
     if out is None:
@@ -128,20 +131,19 @@ def linear_to_srgb8(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     flat_out = out.reshape(-1)
     if not np.shares_memory(flat_out, out):
         raise ValueError("linear_to_srgb8: out must be a contiguous uint8 array")
-    t = np.empty(min(_CHUNK, flat_in.size), np.float32)
-    i = np.empty(t.size, np.intp)
-    cmp = np.empty(t.size, bool)
+    i = np.empty(min(_CHUNK, flat_in.size), np.intp)
+    v = np.empty(i.size, np.float32)
+    t = np.empty(i.size, np.float32)
+    cmp = np.empty(i.size, bool)
     for a in range(0, flat_in.size, _CHUNK):
         b = min(a + _CHUNK, flat_in.size)
         n = b - a
-        tt, ii, cc = t[:n], i[:n], cmp[:n]
-        with np.errstate(over="ignore"):  # huge values become inf, then ENCODE_BINS
-            np.multiply(flat_in[a:b], np.float32(ENCODE_BINS), out=tt)
-        np.fmax(tt, np.float32(0.0), out=tt)  # fmax/fmin: NaN -> 0
-        np.fmin(tt, np.float32(ENCODE_BINS), out=tt)
-        ii[...] = tt  # truncation = floor for t >= 0
+        ii, vv, tt, cc = i[:n], v[:n], t[:n], cmp[:n]
+        np.minimum(flat_in[a:b], np.float32(2.0), out=vv)  # +inf -> 2 (its bin holds NaNs); NaN stays
+        np.right_shift(vv.view(np.uint32), 16, out=ii, casting="unsafe")
         o = flat_out[a:b]
         _BASE.take(ii, out=o)
-        np.less_equal(_STEP.take(ii), tt, out=cc)  # t = clip(x) * bins exactly
+        _STEP.take(ii, out=tt)
+        np.greater_equal(vv, tt, out=cc)  # False against NaN: no threshold in the bin
         o += cc
     return out

@@ -44,6 +44,11 @@ def test_encode_thresholds_are_exact_and_codes_monotone():
     assert np.all(srgb_encode64(below) * 255 + 0.5 < np.arange(1, 256))
     dense = np.linspace(-0.1, 1.1, 2_000_001, dtype=np.float32)
     assert np.all(np.diff(linear_to_srgb8(dense).astype(int)) >= 0)
+    # the first and last float32 of every group sharing their top 16 bits (the table's bins):
+    # every sign, exponent, NaN and infinity
+    top = np.arange(1 << 16, dtype=np.uint32) << 16
+    edges = np.concatenate([top, top | 0xFFFF]).view(np.float32)
+    np.testing.assert_array_equal(linear_to_srgb8(edges), analytic_codes(edges))
 
 
 @settings(max_examples=200, deadline=None)
