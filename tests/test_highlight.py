@@ -41,6 +41,11 @@ def test_unboost_is_the_exact_inverse_in_any_layout():
     x[:20] = 0.75 + 0.25 * x[:20]
     x[30, 30] = (3.0, 0.2, 0.1)  # beyond white (an HDR asset)
     for params in ((0.9, 4.0, 2.0), (0.5, 20.0, 0.7), (0.99, 1.0, 6.0)):
+        t = srgb_decode_exact(params[0])
+        knots = (t + (1 - t) * np.arange(KNOTS + 1) / KNOTS).astype(np.float32)  # maxima on and by the knots
+        x[40:44, :65, 0] = np.resize(knots, 260).reshape(4, 65)
+        x[44:48, :65, 0] = np.resize(np.nextafter(knots, np.float32(2)), 260).reshape(4, 65)
+        x[40:48, :65, 1:] = 0.5 * x[40:48, :65, :1]
         back = unboost(boost(x, *params), *params)
         np.testing.assert_allclose(back, x, rtol=3e-7, atol=1e-9)
         assert np.array_equal(linear_to_srgb8(back), linear_to_srgb8(x))

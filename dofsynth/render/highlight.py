@@ -44,7 +44,8 @@ def _decimal_pow(base: float, exponent: float) -> float:
 
 @lru_cache(maxsize=64)
 def _tables(threshold: float, gain: float, power: float):
-    """T, the segment width and, per knot k: m_k, g_k, the slope of g and h_k = m_k * g_k."""
+    """T, the segment width and, per knot k: m_k, g_k, the slope of g and h_k = m_k * g_k; and
+    `_segment`'s index of h: the scale of its bins and the knot at each bin's start."""
     if not 0.0 <= threshold < 1.0:
         raise ValueError(f"highlight threshold must be in [0, 1), got {threshold}")
     if gain < 0 or power <= 0:
@@ -54,7 +55,29 @@ def _tables(threshold: float, gain: float, power: float):
     g = np.array([1.0 + gain * _decimal_pow(k / KNOTS, power) for k in range(KNOTS + 1)])
     m = t + width * np.arange(KNOTS + 1)
     m[-1] = 1.0
-    return t, width, m, g, np.diff(g), m * g
+    h = m * g
+    # bins narrower than the knots' smallest gap in h (>= width: h' = g + m g' >= 1), so each
+    # holds at most one knot
+    scale = _INDEX_BINS / (h[-1] - t)
+    starts = t + np.arange(_INDEX_BINS + 1) / scale
+    assert np.diff(h).min() > 1.0 / scale
+    start_knot = np.clip(np.searchsorted(h, starts, side="right") - 1, 0, KNOTS - 1)
+    return t, width, m, g, np.diff(g), h, scale, start_knot
+
+
+_INDEX_BINS = 1 << 14
+
+
+def _segment(y: np.ndarray, tables) -> np.ndarray:
+    """The segment k of h holding each y in (T, h_KNOTS): searchsorted(h, y, "right") - 1 clipped
+    to [0, KNOTS - 1], found from the knot at the start of y's bin, moved by at most one knot
+    each way (bins hold one knot at most; the second test covers the bin index's rounding)."""
+    t, _, _, _, _, h, scale, start_knot = tables
+    b = np.clip(((y - t) * scale).astype(np.intp), 0, _INDEX_BINS)
+    k = start_knot[b]
+    k -= (y < h[k]) & (k > 0)
+    k += (y >= h[k + 1]) & (k < KNOTS - 1)
+    return k
 
 
 def _channel_max(x: np.ndarray, axis: int) -> np.ndarray:
@@ -68,7 +91,7 @@ def _channel_max(x: np.ndarray, axis: int) -> np.ndarray:
 
 def _factor(m: np.ndarray, tables) -> np.ndarray:
     """g(m) (float64) for linear maxima above T."""
-    t, width, _, g, dg, _ = tables
+    t, width, _, g, dg = tables[:5]
     s = np.clip((m - t) / (1.0 - t), 0.0, 1.0) * KNOTS
     k = np.minimum(np.floor(s), KNOTS - 1).astype(np.intp)
     return g[k] + dg[k] * (s - k)
@@ -76,11 +99,11 @@ def _factor(m: np.ndarray, tables) -> np.ndarray:
 
 def _root(mb: np.ndarray, tables) -> np.ndarray:
     """m with m * g(m) = mb, for boosted maxima mb above T (float64)."""
-    t, width, m, g, dg, h = tables
+    t, width, m, g, dg, h = tables[:6]
     out = np.where(mb <= t, mb, mb / g[-1])  # unchanged below T; beyond white g is 1 + gain
     inside = (mb > t) & (mb < h[-1])
     y = mb[inside]
-    k = np.clip(np.searchsorted(h, y, side="right") - 1, 0, KNOTS - 1)
+    k = _segment(y, tables)
     a, b = width * dg[k], m[k] * dg[k] + width * g[k]  # h(m_k + width f) = h_k + b f + a f^2
     r = np.maximum(y - h[k], 0.0)
     f = 2.0 * r / (b + np.sqrt(b * b + 4.0 * a * r))
