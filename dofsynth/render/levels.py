@@ -61,5 +61,9 @@ def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0)
 
 
 def level_weight(k0: np.ndarray, f: np.ndarray, k: int) -> np.ndarray:
-    """Level k's linear weight of pixels with lower level index k0 and fraction f (float32)."""
-    return np.where(k0 == k, 1.0 - f, 0.0).astype(np.float32) + np.where(k0 == k - 1, f, 0.0).astype(np.float32)
+    """Level k's linear weight of pixels with lower level index k0 and fraction f (float32):
+    1 - f where k0 = k, f where k0 = k - 1, else 0."""
+    w = np.zeros(k0.shape, np.float32)
+    np.subtract(np.float32(1.0), f, out=w, where=k0 == k)
+    np.copyto(w, f, where=k0 == k - 1)
+    return w
