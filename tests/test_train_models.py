@@ -198,3 +198,31 @@ def test_the_hybrids_correction_in_bands_of_rows_is_the_whole_frames(depth):
         finally:
             models.unet_reach = reach
     assert whole.abs().max() > 0.05
+
+
+def test_the_gated_hybrid_runs_its_u_net_only_near_the_depth_edges():
+    """With [model] gate = "edges" the correction is weighted 0 beyond the blur's reach of a depth
+    edge, so `render --model` (rows given) runs the U-Net only on the tiles within it: the
+    output is the whole frame's, from under half of its pixels; with group normalisation (not
+    local) the frame goes whole."""
+    from dofsynth.train.models import HybridNet, edge_weight
+
+    torch.manual_seed(0)
+    H, W = 200, 264
+    image, classical = torch.rand(1, 3, H, W), torch.rand(1, 3, H, W)
+    signed = torch.full((1, 1, H, W), -0.1)
+    signed[..., 150:, 200:] = 0.3  # a near object in one corner: its edge reaches 7 px (coc_px 16)
+    for norm in ("batch", "group"):
+        model = HybridNet(ModelConfig(kind="hybrid", kp_width=8, kp_depth=1, gate="edges", norm=norm)).eval()
+        torch.nn.init.normal_(model.head.weight, std=0.5)
+        areas = []
+        model.body.register_forward_hook(lambda m, i, o: areas.append(i[0].shape[-2] * i[0].shape[-1]))
+        kw = dict(sizes=[(H, W)], signed_hi=signed, coc_px=16.0, classical=classical)
+        with torch.no_grad():
+            _, whole = model(image, signed, **kw)
+            areas.clear()
+            _, tiled = model(image, signed, rows=8, **kw)
+        torch.testing.assert_close(tiled, whole, atol=1e-6, rtol=0)
+        band = edge_weight(signed, 16.0) > 0
+        assert band.any() and not torch.equal(whole[band.expand_as(whole)], classical[band.expand_as(whole)])
+        assert sum(areas) < H * W / 2 if norm == "batch" else areas == [H * W]

@@ -338,6 +338,7 @@ class HybridNet(nn.Module):
         nn.init.zeros_(self.head.weight), nn.init.zeros_(self.head.bias)
         self.identity = cfg.identity
         self.gate = cfg.gate == "edges"
+        self.local = cfg.norm != "group"  # each output depends on its neighbourhood only (eval mode)
 
     def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
                 image_lo: torch.Tensor | None = None, *, sizes: list | None = None, rows: int | None = None,
@@ -350,37 +351,59 @@ class HybridNet(nn.Module):
         sizes = size_chain(tuple(image.shape[-2:]), steps) if sizes is None else sizes
         _check(image, 3, "image"), _check(classical, 3, "classical", image.shape[-2:])
         signed = signed_hi if signed_hi is not None else bilinear(signed_lo, tuple(image.shape[-2:]))
-        correction = self._correction(torch.cat([image, classical, signed], dim=1), rows)
-        if self.gate:
-            correction = correction * edge_weight(signed_hi, coc_px)
+        weight = edge_weight(signed_hi, coc_px) if self.gate else None
+        correction = self._correction(torch.cat([image, classical, signed], dim=1), rows,
+                                      None if weight is None else weight > 0)
+        if weight is not None:
+            correction = correction * weight
         result = classical + correction
         if self.identity and signed_hi is not None:
             result = torch.where(untouched(signed_hi, coc_px), image, result)
         return area_resize(result, sizes[0]), result
 
-    def _correction(self, x: torch.Tensor, rows: int | None) -> torch.Tensor:
+    def _correction(self, x: torch.Tensor, rows: int | None, needed: torch.Tensor | None = None) -> torch.Tensor:
         """The U-Net's correction of its input x (B, 7, H, W), edge-padded to a multiple of the
-        U-Net's stride (so each level is exactly half the one above, as in training's crops);
-        with `rows`, in bands of about that many rows (a multiple of the stride, at least 8x
-        `unet_reach`), each computed with `unet_reach` more rows on either side, which its
-        outputs do not depend on: the same values up to float rounding, the U-Net's activations
-        for one band instead of a frame."""
+        U-Net's stride (so each level is exactly half the one above, as in training's crops).
+        With `rows` (inference: an eval-mode U-Net without group normalisation, whose outputs
+        depend only on inputs within `unet_reach`), in tiles of about that many rows and
+        columns (a multiple of the stride, at least 8x `unet_reach`), each computed with
+        `unet_reach` more on every side: the same values up to float rounding, the activations
+        of one band instead of a frame. `needed` (B, 1, H, W) bool: only the tiles holding a
+        needed pixel are computed (a run of them at once), the rest of the correction is 0."""
         h, w = x.shape[-2:]
         depth = len(self.body.down)
         stride = 2**depth
         if h % stride or w % stride:  # every level exactly half the one above, as in training's crops
             x = F.pad(x, (0, -w % stride, 0, -h % stride), mode="replicate")
-        H = x.shape[-2]
+        H, W = x.shape[-2:]
         reach = -(-unet_reach(depth) // stride) * stride
         step = -(-max(rows or H, 8 * reach) // stride) * stride
-        if step >= H:
+        if rows is None or not self.local or self.training or (step >= max(H, W) and needed is None):
             return self.head(self.body(x))[:, :, :h, :w]
-        out = x.new_empty((x.shape[0], 3, h, w))
+        out = x.new_zeros((x.shape[0], 3, h, w))
         for r0 in range(0, h, step):
             r1 = min(r0 + step, h)
             a, b = max(r0 - reach, 0), min(r1 + reach, H)
-            out[:, :, r0:r1] = self.head(self.body(x[:, :, a:b]))[:, :, r0 - a : r1 - a, :w]
+            for c0, c1 in _runs(None if needed is None else needed[:, :, r0:r1].any(dim=2).any(dim=0)[0], w, step):
+                ca, cb = max(c0 - reach, 0), min(c1 + reach, W)
+                part = self.head(self.body(x[:, :, a:b, ca:cb]))
+                out[:, :, r0:r1, c0:c1] = part[:, :, r0 - a : r1 - a, c0 - ca : c1 - ca]
         return out
+
+
+def _runs(needed: torch.Tensor | None, w: int, step: int) -> list[tuple[int, int]]:
+    """The column ranges [c0, c1) of runs of tiles `step` wide (the last one up to w) that hold
+    a needed column (`needed` (w,) bool; None: all of them, one run)."""
+    if needed is None:
+        return [(0, w)]
+    tiles = [bool(needed[c : c + step].any()) for c in range(0, w, step)]
+    runs = []
+    for i, on in enumerate(tiles):
+        if on and runs and runs[-1][1] == i * step:
+            runs[-1] = (runs[-1][0], min((i + 1) * step, w))
+        elif on:
+            runs.append((i * step, min((i + 1) * step, w)))
+    return runs
 
 
 def unet_reach(depth: int) -> int:
