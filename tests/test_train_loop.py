@@ -414,6 +414,39 @@ def test_eval_gives_every_run_and_method_the_depth_asked_for(setup, tmp_path):
     assert main(["eval", str(run), "--data", str(data), "--depth", "fog"]) == 2   # refused before any work
 
 
+def test_eval_can_give_everyone_what_a_depth_network_predicts(setup, tmp_path):
+    """--depth predicted:RUN: the map the depth run predicts from each all-in-focus image, fitted
+    to the clean disparity's scale by the 5-knot spline, goes to every method, and its MAE
+    against the clean map is reported; a missing or DoF run is refused."""
+    from dofsynth.codecs import decode_depth
+    from dofsynth.io import decode_image
+    from dofsynth.train.data import find_segments, raw_samples
+    from dofsynth.train.depth import DepthNet, depth_errors, predict_disparity
+    from dofsynth.train.evaluate import evaluate_run
+
+    _, data, _, run = setup
+    torch.manual_seed(0)
+    cfg = from_dict({"train": {"task": "depth"}, "data": {"crop": 32},
+                     "depth": {"backbone": "resnet18", "width": 8, "decoder_width": 16}})
+    net = DepthNet(cfg.depth).eval()
+    depth_run = tmp_path / "depth-run"
+    checkpoint.save(depth_run / "ckpt.pt", net, torch.optim.AdamW(net.parameters()), 1, 0, 0, cfg)
+    kw = {"write": False, "device": "cpu"}
+    got = evaluate_run(run, data, depth=f"predicted:{depth_run}", **kw)
+    want = []  # each target's: its sample's fitted prediction against the clean map
+    for raw in raw_samples(find_segments(data, "test"), "test"):
+        clean = decode_depth(raw["depth.exr"], "depth")
+        pred = predict_disparity(net, decode_image(raw["aif.png"], "aif")[:, :, :3], 32)
+        want += [depth_errors(pred, clean)["mae_spline"]] * len(json.loads(raw["json"])["targets"])
+    assert got["depth_mae"] == pytest.approx(float(np.mean(want)), rel=1e-3) and got["depth_mae"] > 0.01
+    gt = evaluate_run(run, data, depth="gt", **kw)
+    assert gt["depth_mae"] == 0.0 and _classical(got) != _classical(gt)
+    assert _classical(evaluate_run(run, data, depth=f"predicted:{depth_run}", **kw)) == _classical(got)
+    with pytest.raises(ValueError, match="not of the depth network"):
+        evaluate_run(run, data, depth=f"predicted:{run}", **kw)
+    assert main(["eval", str(run), "--data", str(data), "--depth", f"predicted:{tmp_path / 'none'}"]) == 2
+
+
 def test_the_classical_baseline_renders_with_the_targets_highlight_boost():
     """In focus it returns the image exactly, highlights included; out of focus a small bright
     light spreads brighter with the record's highlight boost than without."""

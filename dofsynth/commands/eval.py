@@ -32,9 +32,11 @@ def register(subparsers) -> None:
                    help="the disparity everyone is given: gt (clean), run (the run's own training "
                         "corruption), realistic (the errors of monocular estimates together: disparity MAE "
                         "about 0.14), morph, edge_blur, noise, quantize, shift, swap, fill, warp or remap "
-                        "(that kind alone, always, with the default [augment] ranges), or a TOML file whose "
+                        "(that kind alone, always, with the default [augment] ranges), predicted:DEPTH_RUN "
+                        "(what the depth network of that run predicts from the all-in-focus image, fitted "
+                        "to the clean disparity's scale by the 5-knot spline), or a TOML file whose "
                         "[augment] table is the setting (a training config, or a shipped one by name: "
-                        "train-learn); default: run")
+                        "train-learn); default: run. The given disparity's MAE is printed with the table")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"], help="default: cuda when available")
     p.set_defaults(func=run)
 

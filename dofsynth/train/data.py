@@ -150,31 +150,36 @@ def sample_rng(seed: int, epoch: int, split: str, index: int) -> np.random.Gener
 
 
 def training_item(sample: dict, cfg: Config, rng: np.random.Generator, *, crop: int | None = None,
-                  target: int | None = None, augment=None) -> dict:
+                  target: int | None = None, augment=None, disparity: np.ndarray | None = None) -> dict:
     """Decode one raw webdataset sample (member suffix -> bytes) into a training item; a sample
     that cannot be used (a member missing or undecodable, NaN or inf in it) raises ValueError
     naming its shard and key.
 
     crop: side of the aligned random crop (None: the whole image, trimmed to a multiple of
     2**levels). target: which DoF target (None: as [data] target says). augment: the
-    corruption (an AugmentConfig; None: the config's [augment]).
+    corruption (an AugmentConfig; None: the config's [augment]). disparity: a map (H, W) given
+    instead of the sample's, corrupted or not (an estimate's: `dofsynth eval --depth
+    predicted:RUN`).
     """
-    return finish_item(decode_crop(sample, cfg, rng, crop=crop, target=target, augment=augment), cfg)
+    return finish_item(decode_crop(sample, cfg, rng, crop=crop, target=target, augment=augment,
+                                   disparity=disparity), cfg)
 
 
 def decode_crop(sample: dict, cfg: Config, rng, *, crop: int | None, target: int | None = None,
-                augment=None) -> dict:
-    """The compact half of `training_item`: the chosen target, the corrupted disparity and the
-    crop, as stored codes (images) and float32 (disparity); what the shuffle buffer holds."""
+                augment=None, disparity: np.ndarray | None = None) -> dict:
+    """The compact half of `training_item`: the chosen target, the corrupted (or given)
+    disparity and the crop, as stored codes (images) and float32 (disparity); what the shuffle
+    buffer holds."""
     key = sample.get("__key__", "?")
     try:
-        return _decode_crop(sample, key, cfg, rng, crop, target, cfg.augment if augment is None else augment)
+        return _decode_crop(sample, key, cfg, rng, crop, target, cfg.augment if augment is None else augment,
+                            disparity)
     except (ValueError, KeyError) as exc:
         what = f"missing member {exc}" if isinstance(exc, KeyError) else str(exc)
         raise ValueError(f"{sample.get('__url__', '<shard>')}: sample {key}: {what}") from exc
 
 
-def _decode_crop(sample: dict, key: str, cfg: Config, rng, crop, target, augment) -> dict:
+def _decode_crop(sample: dict, key: str, cfg: Config, rng, crop, target, augment, given=None) -> dict:
     record = json.loads(sample["json"])
     n_targets = len(record["targets"])
     if target is None:
@@ -184,8 +189,13 @@ def _decode_crop(sample: dict, key: str, cfg: Config, rng, crop, target, augment
     depth = decode_depth(sample["depth.exr"], f"{key}.depth.exr")
     if not np.isfinite(depth).all():
         raise ValueError(f"depth.exr holds {int((~np.isfinite(depth)).sum())} NaN or inf values")
-    cover = decode_image(sample["cover.png"], f"{key}.cover.png")
-    corrupted, params = corrupt_disparity(depth, layers_from_record(record, cover), augment, rng)
+    if given is not None:
+        if np.shape(given) != depth.shape:
+            raise ValueError(f"the disparity given is {np.shape(given)}, depth.exr {depth.shape}")
+        corrupted, params = np.asarray(given, np.float32), {"given": True}
+    else:
+        cover = decode_image(sample["cover.png"], f"{key}.cover.png")
+        corrupted, params = corrupt_disparity(depth, layers_from_record(record, cover), augment, rng)
 
     s = 2 ** cfg.data.levels
     h, w = depth.shape

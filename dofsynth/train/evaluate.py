@@ -9,10 +9,12 @@ For every sample and every one of its DoF targets, the same disparity goes to
 and, as a floor, "all-in-focus" (the input itself). Which disparity (`depth`): "gt" (the
 clean one), "run" (the run's own training corruption), "realistic" (the kinds of real estimates
 together, `REALISTIC`: disparity MAE about 0.14), one corruption kind alone at probability 1
-with the default ranges of [augment] (see `DEPTH_KINDS`), or a TOML file whose
-[augment] table is the setting (a shipped training config by name too, e.g. "train-learn");
-always drawn with the evaluation seed, so runs trained
-differently are scored on the same inputs. PSNR and SSIM (skimage.metrics, sRGB in [0, 1],
+with the default ranges of [augment] (see `DEPTH_KINDS`), a TOML file whose [augment] table is
+the setting (a shipped training config by name too, e.g. "train-learn"), always drawn with the
+evaluation seed, so runs trained differently are scored on the same inputs; or
+"predicted:RUN", what the depth network of run RUN predicts from the all-in-focus image, on the
+clean map's scale (`depth_predictor`). The given disparity's MAE against the clean one is
+recorded (`depth_mae`). PSNR and SSIM (skimage.metrics, sRGB in [0, 1],
 data_range 1) are taken against the rendered target, over the frame and in three regions:
 the band within the target's max CoC of a depth edge of the clean disparity ("edge"), where a
 single-image renderer fails; the rest of the frame ("out"); and where no blur reaches by the
@@ -38,11 +40,11 @@ from dofsynth.color import linear_to_srgb
 from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
 from dofsynth.io import decode_image, normalize_disparity
 from dofsynth.codecs import decode_depth
-from dofsynth.train.checkpoint import load_model
+from dofsynth.train.checkpoint import load_model, weights_path
 from dofsynth.train.classical import classical_render
 from dofsynth.train.config import AugmentConfig, load
 from dofsynth.train.data import excluded, find_segments, full_res_signed, raw_samples, sample_rng, training_item
-from dofsynth.train.depth import depth_errors, predict_disparity
+from dofsynth.train.depth import depth_errors, predict_disparity, spline_fit
 from dofsynth.train.models import untouched
 
 METHODS = ("network", "classical", "all-in-focus")
@@ -56,8 +58,18 @@ REALISTIC = {"morph_prob": 0.5, "morph_kernel": (3, 21), "swap_prob": 0.15, "fil
 EDGE_STEP = 0.02  # a depth edge: neighbouring disparities differ by more (ramps change far less per pixel)
 
 
+PREDICTED = "predicted:"  # depth = "predicted:RUN": what the depth network of RUN predicts
+
+
 def depth_corruption(depth: str, run_augment: AugmentConfig) -> AugmentConfig:
-    """The corruption named by `depth` (see the module docstring) as an AugmentConfig."""
+    """The corruption named by `depth` (see the module docstring) as an AugmentConfig; for
+    "predicted:RUN" none (`depth_predictor` gives the map), once RUN is found to hold weights."""
+    if depth.startswith(PREDICTED):
+        run = depth[len(PREDICTED):]
+        if not run or not weights_path(run).is_file():
+            raise ValueError(f"depth {depth!r}: no trained depth run at {run!r} (dofsynth train with [train] "
+                             "task = \"depth\")")
+        return AugmentConfig(enabled=False)
     if depth == "gt":
         return AugmentConfig(enabled=False)
     if depth == "run":
@@ -70,8 +82,31 @@ def depth_corruption(depth: str, run_augment: AugmentConfig) -> AugmentConfig:
     try:
         return load(depth).augment  # a TOML file, or a shipped training config by name
     except FileNotFoundError:
-        raise ValueError(f"depth must be gt, run, realistic, one of {', '.join(DEPTH_KINDS)}, a .toml file with an "
-                         f"[augment] table or a shipped training config's name, got {depth!r}") from None
+        raise ValueError(f"depth must be gt, run, realistic, one of {', '.join(DEPTH_KINDS)}, predicted:RUN (a "
+                         f"depth run), a .toml file with an [augment] table or a shipped training config's "
+                         f"name, got {depth!r}") from None
+
+
+def depth_predictor(depth: str, device: str):
+    """For depth = "predicted:RUN", a function (raw sample, its clean disparity (H, W)) -> the
+    disparity the depth network of RUN predicts from the sample's all-in-focus image, mapped
+    onto the clean map's scale by the 5-knot spline fit (`depth.spline_fit`: the scale, offset
+    and monotone warp a relative estimate leaves open, as the paper's depth errors are
+    measured; its boundaries, holes and smoothing stay the network's), clipped to [0, 1],
+    float32. None for any other `depth`."""
+    if not depth.startswith(PREDICTED):
+        return None
+    depth_corruption(depth, AugmentConfig())  # the run is there
+    run = depth[len(PREDICTED):]
+    model, cfg = load_model(run, device)
+    if cfg.train.task != "depth":
+        raise ValueError(f"depth {depth!r}: {run} is a run of the DoF networks, not of the depth network")
+
+    def predict(raw: dict, clean: np.ndarray) -> np.ndarray:
+        image = decode_image(raw["aif.png"], f"{raw['__key__']}.aif.png")[:, :, :3]
+        pred = predict_disparity(model, image, cfg.data.crop)
+        return np.clip(spline_fit(pred, clean), 0.0, 1.0).astype(np.float32)
+    return predict
 
 
 def _hwc(t: torch.Tensor) -> np.ndarray:
@@ -137,6 +172,7 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
     if cfg.train.task == "depth":
         return evaluate_depth(model, cfg, run_dir, data_dir, split=split, limit=limit, write=write)
     augment = depth_corruption(depth, cfg.augment)
+    predictor = depth_predictor(depth, device)
     to_srgb = (lambda x: x) if cfg.data.color == "srgb" else linear_to_srgb
     items = []
     for n, raw in enumerate(raw_samples(find_segments(data_dir, split, exclude=excluded(cfg, data_dir)), split)):
@@ -144,9 +180,10 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
             break
         record = json.loads(raw["json"])
         clean = decode_depth(raw["depth.exr"], f"{raw['__key__']}.depth.exr")
+        given = predictor(raw, clean) if predictor else None
         for t in range(len(record["targets"])):
             rng = sample_rng(seed, t, split, int(record["index"]))
-            item = training_item(raw, cfg, rng, crop=None, target=t, augment=augment)
+            item = training_item(raw, cfg, rng, crop=None, target=t, augment=augment, disparity=given)
             target = to_srgb(_hwc(item["target"]))
             image = to_srgb(_hwc(item["image"]))
             band = edge_band(clean[: target.shape[0], : target.shape[1]], item["max_coc"])
@@ -162,7 +199,9 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
                 outputs["classical"] = classical_render(image, _hwc(item["disparity"])[:, :, 0], item["focus"],
                                                         item["max_coc"], record)
             for method, out in outputs.items():
-                items.append({"key": item["key"], "target": t, "method": method, **_metrics(out, target, band, same)})
+                items.append({"key": item["key"], "target": t, "method": method, **_metrics(out, target, band, same),
+                              "depth_mae": float(np.abs(_hwc(item["disparity"])[:, :, 0]
+                                                        - clean[: target.shape[0], : target.shape[1]]).mean())})
     if not items:
         raise ValueError(f"{data_dir}/{split}: no samples to evaluate")
     table = []
@@ -174,7 +213,8 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
                 vals = [r[f] for r in rows if r[f] is not None]
                 means[f] = float(np.mean(vals)) if vals else None
             table.append({"method": method, **means, "n": len(rows)})
-    result = {"split": split, "seed": seed, "depth": depth, "table": table, "items": items}
+    result = {"split": split, "seed": seed, "depth": depth, "table": table, "items": items,
+              "depth_mae": float(np.mean([r["depth_mae"] for r in items]))}  # the given disparity's, against the clean
     if write:
         atomic_write_bytes(run_dir / "eval.csv", csv_text(FIELDS, table).encode())
         atomic_write_bytes(run_dir / "eval.json", canonical_json(result, indent=1))
@@ -219,7 +259,8 @@ def format_table(result: dict) -> str:
                  f"{'method':<14} {'MAE':>7} {'MAE spline':>11} {'n':>5}"]
         lines += [f"{r['method']:<14} {r['mae']:>7.4f} {r['mae_spline']:>11.4f} {r['n']:>5}" for r in result["table"]]
         return "\n".join(lines)
-    lines = [f"depth given: {result.get('depth', 'run')}; regions: edge = within max CoC of a depth edge, "
+    mae = f" (disparity MAE {result['depth_mae']:.3f})" if result.get("depth_mae") is not None else ""
+    lines = [f"depth given: {result.get('depth', 'run')}{mae}; regions: edge = within max CoC of a depth edge, "
              "out = the rest, same = where the target is the input",
              f"{'method':<14} {'PSNR dB':>8} {'SSIM':>7}" + "".join(f" {r + ' dB':>8} {r + ' SSIM':>10}" for r in REGIONS)
              + f" {'n':>5}"]
