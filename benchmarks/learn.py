@@ -2,7 +2,7 @@
 under an hour.
 
     .venv/bin/python benchmarks/learn.py [--out out/learn-bench] [--part all|networks|main]
-    .venv/bin/python benchmarks/learn.py --part real [--seeds 3] [--limit N] [--only gated]
+    .venv/bin/python benchmarks/learn.py --part real [--seeds 3] [--limit N] [--only gated] [--depth predicted:RUN]
 
 1. Data: recipes/learn.toml (the demo recipe at 256 px, max CoC up to 8 px, built-in assets),
    2000 train + 100 test samples, generated into OUT/data (kept and reused when present).
@@ -21,14 +21,15 @@ under an hour.
    photos and mattes of ../shared/assets at 512x341 px, max CoC 12-24 px, train and test split
    by asset; 400 + 40 scenes, 2 targets each) into OUT/data-real; recipes/train-learn-real.toml
    (the hybrid model, 128 px crops, trained on the depth errors of `eval --depth realistic`),
-   the paper's networks on the same data, the hybrid in linear light ([data] color), the
+   the paper's networks on the same data (c = 32, and the paper's ablations: c = 8 and 16, and
+   trained on the clean depth), the hybrid in linear light ([data] color), the
    hybrid trained for 1200 steps instead of 400, and so trained with its correction gated to
    the band around the given depth's edges ([model] gate = "edges"), also for 2400 steps, each
    trained with --seeds seeds; one table on
    the test split, everyone given the same realistic depth: PSNR and SSIM overall, in the edge
    band, outside it and where no blur reaches (the target is the input), the mean of the seeds
-   and their range. About 4 minutes per run of 400 steps, 11 of 1200, 22 of 2400 (2 cores),
-   2.5 hours in all.
+   and their range (--depth: another disparity, e.g. predicted:RUN, a depth run's estimates).
+   About 2-4 minutes per run of 400 steps, 11 of 1200, 22 of 2400 (2 cores), 3 hours in all.
 Every size (image, crops, low resolution, steps, batch, parameters) is printed. Runs go to
 OUT/runs/<config hash>; a finished run is reused (delete it to train again).
 """
@@ -183,11 +184,12 @@ def spread(values: list[float], digits: int) -> str:
     return f"{sum(values) / len(values):.{digits}f} ({min(values):.{digits}f}-{max(values):.{digits}f})"
 
 
-def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "") -> None:
+def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", depth: str = "realistic") -> None:
     """The lens-blur benchmark of issue #25: recipes/learn-real.toml (real photos, split by
     asset, max CoC 12-24 px), the hybrid model and the paper's networks trained with each seed
     on realistic depth errors; everyone given the same realistic depth on the test split.
-    `only`: just the models whose names hold it (with the classical and all-in-focus rows)."""
+    `only`: just the models whose names hold it (with the classical and all-in-focus rows);
+    `depth`: the disparity everyone is given (`dofsynth eval --depth`)."""
     recipe, base = load_recipe(REAL_RECIPE), load(REAL_CONFIG)
     data = make_data(out, REAL_RECIPE, "data-real")
     d = base.data
@@ -197,8 +199,13 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "") ->
           f"{recipe.samples.test} test scenes x {recipe.focus.targets_per_scene} targets, split by asset")
     print(f"training: {REAL_CONFIG.name}, {d.crop} px crops, batch {d.batch_size}, {base.train.max_steps} steps, "
           f"lr {base.train.lr:g}, depth errors of [augment] (= eval --depth realistic), seeds {seeds}; "
-          f"test: {'all' if limit is None else limit} scenes, depth realistic, evaluation seed 12345")
-    kinds = {"hybrid": base, "deeplens (paper networks)": replace(base, "model", **DEEPLENS),
+          f"test: {'all' if limit is None else limit} scenes, depth {depth}, evaluation seed 12345")
+    paper = replace(base, "model", **DEEPLENS)
+    kinds = {"hybrid": base, "deeplens (paper networks)": paper,
+             # the paper's ablations of its networks: c = 8 and 16 feature channels (c = 32 above),
+             # and trained on the clean depth (tested, as all, on the realistic errors)
+             **{f"deeplens, c = {4 * fc}": replace(paper, "model", feat_channels=fc) for fc in (2, 4)},
+             "deeplens, trained on clean depth": replace(paper, "augment", enabled=False),
              "hybrid, color = linear": replace(base, "data", color="linear"),
              f"hybrid, {LONG} steps": replace(base, "train", max_steps=LONG, checkpoint_interval=LONG),
              **{f"hybrid gated to the edge bands, {n} steps": replace(replace(base, "model", gate="edges"), "train",
@@ -211,14 +218,15 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "") ->
         for seed in seeds:
             folder = run(f"{name}, seed {seed}", replace(cfg, "train", seed=seed), data, out)
             t0 = time.perf_counter()
-            table = {r["method"]: r for r in evaluate_run(folder, data, depth="realistic", limit=limit,
-                                                           device="cpu")["table"]}
-            print(f"  evaluated in {time.perf_counter() - t0:.0f} s", flush=True)
+            result = evaluate_run(folder, data, depth=depth, limit=limit, device="cpu")
+            table = {r["method"]: r for r in result["table"]}
+            print(f"  evaluated in {time.perf_counter() - t0:.0f} s (the given disparity's MAE "
+                  f"{result['depth_mae']:.3f})", flush=True)
             tables.setdefault(name, []).append(table["network"])
             for method in ("classical", "all-in-focus"):  # the same for every run: the same inputs
                 tables.setdefault(method, [table[method]])
     header = "| method | " + " | ".join(f"{m} {r}" for r_, r in REGION_NAMES for _, m in METRICS) + " |"
-    print("\n### Test split, everyone given the same realistic depth (mean of the seeds, range)\n")
+    print(f"\n### Test split, everyone given the same depth ({depth}; mean of the seeds, range)\n")
     print(header + "\n|" + "---|" * (1 + len(REGION_NAMES) * len(METRICS)))
     for name, rows in tables.items():
         cells = []
@@ -237,12 +245,15 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3, help="with --part real: training seeds per model (default 3)")
     ap.add_argument("--limit", type=int, default=None, help="with --part real: test scenes scored (default all)")
     ap.add_argument("--only", default="", help="with --part real: only the models whose names hold this text")
+    ap.add_argument("--depth", default="realistic",
+                    help="with --part real: the disparity everyone is given (dofsynth eval --depth; default "
+                         "realistic), e.g. predicted:RUN for a depth run's estimates")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     progress.set_verbosity(quiet=True)  # the training bars; this script prints its own lines
     if args.part == "real":
-        part_real(args.out, list(range(args.seeds)), args.limit, args.only)
+        part_real(args.out, list(range(args.seeds)), args.limit, args.only, args.depth)
         return
     recipe, base = load_recipe(RECIPE), load(CONFIG)
     data = make_data(args.out)
