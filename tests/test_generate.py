@@ -429,3 +429,29 @@ def test_the_reported_peak_memory_is_the_workers_not_the_callers(smoke_recipe, t
     res = generate(smoke_recipe, tmp_path / "out", executor=LocalExecutor(2, in_process=False), progress=False)
     assert int(ballast[::4096].sum()) == ballast[::4096].size
     assert 0 < res.peak_rss_mb < peak_rss_mb() - 150, (res.peak_rss_mb, peak_rss_mb())
+
+
+def test_the_library_file_is_mapped_by_the_workers_not_copied(tmp_path):
+    """The pool's library file (`write_shared`) holds the arrays out of the pickle, page-aligned:
+    `read_shared` gives the same object with its arrays in a copy-on-write mapping of the
+    file (shared by the workers), read-only ones still read-only, a write changing neither
+    the file nor another reader's copy, and all of it usable once the file is removed."""
+    import numpy as np
+
+    from dofsynth.generate.pool import read_shared, write_shared
+
+    frozen = np.arange(3 * 5000, dtype=np.float32).reshape(3, 5000)
+    frozen.setflags(write=False)
+    obj = {"frozen": frozen, "open": np.ones((70, 90), np.uint8), "meta": ("a", 1.5, [2, 3])}
+    path = tmp_path / "lib.pkl"
+    write_shared(path, obj)
+    first, second = read_shared(path), read_shared(path)
+    path.unlink()
+    for got in (first, second):
+        assert got["meta"] == obj["meta"]
+        for name in ("frozen", "open"):
+            assert np.array_equal(got[name], obj[name]) and got[name].dtype == obj[name].dtype
+            assert not got[name].flags.owndata  # the mapping's pages, not a copy
+    assert not first["frozen"].flags.writeable and first["open"].flags.writeable
+    first["open"][0, 0] = 7                     # copy-on-write: this reader's page only
+    assert second["open"][0, 0] == 1 and first["open"][0, 0] == 7
