@@ -110,7 +110,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048])
     ap.add_argument("--gate", action="store_true", help='the hybrid with [model] gate = "edges"')
     args = ap.parse_args(argv)
-    print(f"| size | model | CPU s | wall s | peak MiB | max difference |\n|---|---|---|---|---|---|")
+    print("| size | model | CPU s | wall s | peak MiB | max difference |\n|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for side in args.sizes:
             rows = {}

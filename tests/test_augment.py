@@ -174,7 +174,7 @@ def test_realistic_depth_is_as_wrong_as_a_monocular_estimate(smoke_set):
     DeepLens paper measured for real estimators (0.116-0.199); each kind alone stays below it."""
     from dofsynth.codecs import decode_depth
     from dofsynth.io import decode_image
-    from dofsynth.train.data import find_segments, raw_samples
+    from dofsynth.train.segments import find_segments, raw_samples
     from dofsynth.train.evaluate import depth_corruption
 
     samples = []

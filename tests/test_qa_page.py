@@ -169,7 +169,7 @@ def test_marks_are_made_kept_downloaded_applied_and_leave_training(browser, revi
     import json
 
     from dofsynth.qa.marks import set_marks
-    from dofsynth.train.data import find_segments
+    from dofsynth.train.segments import find_segments
 
     out, page = review_set
     downloads = tmp_path / "downloads"
@@ -215,7 +215,7 @@ def test_marks_are_made_kept_downloaded_applied_and_leave_training(browser, revi
     kept = {f"{split}-{i:07d}" for s in find_segments(out, split, exclude={bad}) for i in range(s.lo, s.hi)}
     assert bad not in kept and good in kept
     from dofsynth.train.config import load
-    from dofsynth.train.data import excluded
+    from dofsynth.train.segments import excluded
 
     assert excluded(load("train-tiny"), out) == {bad}
     assert main(["sheet", str(out), "--marked", "--split", split, "--png", str(tmp_path / "marked.png"), "-q"]) == 0

@@ -16,9 +16,8 @@ from dofsynth.manifest import assemble_manifest, write_manifest
 from dofsynth.record import format_description
 from dofsynth.shards import ShardInfo, shard_name, write_shard
 from dofsynth.train.config import Config, from_dict
-from dofsynth.train.data import (DofShards, area_downsample, find_segments, make_loader, raw_samples,
-                                 resolve,
-                                 sample_rng, training_item)
+from dofsynth.train.data import DofShards, area_downsample, make_loader, resolve, sample_rng, training_item
+from dofsynth.train.segments import find_segments, raw_samples
 
 TINY = {
     "data": {"crop": 32, "levels": 1, "batch_size": 4, "num_workers": 0, "shuffle_buffer": 8},

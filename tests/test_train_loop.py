@@ -420,7 +420,7 @@ def test_eval_can_give_everyone_what_a_depth_network_predicts(setup, tmp_path):
     against the clean map is reported; a missing or DoF run is refused."""
     from dofsynth.codecs import decode_depth
     from dofsynth.io import decode_image
-    from dofsynth.train.data import find_segments, raw_samples
+    from dofsynth.train.segments import find_segments, raw_samples
     from dofsynth.train.depth import DepthNet, depth_errors, predict_disparity
     from dofsynth.train.evaluate import evaluate_run
 
@@ -483,7 +483,7 @@ def test_two_steps_on_the_generators_smoke_data(tmp_path, smoke_set):
     from dofsynth.train.augment import layers_from_record
     from dofsynth.io import decode_image
     from dofsynth.codecs import decode_depth
-    from dofsynth.train.data import find_segments, raw_samples
+    from dofsynth.train.segments import find_segments, raw_samples
 
     data = smoke_set
     # the corruption's model of the layers agrees with the generator's depth maps
@@ -546,7 +546,8 @@ def test_the_untrained_hybrid_is_the_classical_renderer(setup):
     the classical render from the depth it is given, bit for bit (and the image itself where no
     blur reaches, with [model] identity)."""
     from dofsynth.train.classical import classical_render
-    from dofsynth.train.data import find_segments, full_res_signed, raw_samples, training_item
+    from dofsynth.train.data import full_res_signed, training_item
+    from dofsynth.train.segments import find_segments, raw_samples
     from dofsynth.train.models import HybridNet, untouched
 
     _, data, _, _ = setup
@@ -603,7 +604,8 @@ def test_the_edge_weight_covers_every_pixel_an_edges_blur_reaches_and_fades():
 def test_a_gated_hybrid_corrects_only_near_the_given_depths_edges(setup):
     """[model] gate = "edges": whatever the correction learned, the output is the classical
     render wherever no edge of the given depth is within the blur's reach (`edge_weight` 0)."""
-    from dofsynth.train.data import find_segments, full_res_signed, raw_samples, training_item
+    from dofsynth.train.data import full_res_signed, training_item
+    from dofsynth.train.segments import find_segments, raw_samples
     from dofsynth.train.models import HybridNet, edge_weight
 
     _, data, _, _ = setup

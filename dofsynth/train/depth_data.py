@@ -41,7 +41,8 @@ from dofsynth.codecs import decode_depth
 from dofsynth.rng import sample_key, stream_rng
 from dofsynth.shards import member_index, read_members
 from dofsynth.train.config import Config
-from dofsynth.train.data import excluded, find_segments, process_slot, quiet_worker
+from dofsynth.train.data import process_slot, quiet_worker
+from dofsynth.train.segments import excluded, find_segments
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".exr")
 DEPTH_SUFFIXES = (".exr", ".png", ".tif", ".tiff", ".npy")

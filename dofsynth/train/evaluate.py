@@ -18,7 +18,7 @@ recorded (`depth_mae`). PSNR and SSIM (skimage.metrics, sRGB in [0, 1],
 data_range 1) are taken against the rendered target, over the frame and in three regions:
 the band within the target's max CoC of a depth edge of the clean disparity ("edge"), where a
 single-image renderer fails; the rest of the frame ("out"); and where no blur reaches by the
-clean depth ("same": the target is the input there, `models.untouched`). The table is printed
+clean depth ("same": the target is the input there, `reach.untouched`). The table is printed
 and written to RUN/eval.csv and RUN/eval.json.
 
 A depth run ([train] task = "depth") is scored by `evaluate_depth` instead: the MAE of its
@@ -43,9 +43,10 @@ from dofsynth.codecs import decode_depth
 from dofsynth.train.checkpoint import load_model, weights_path
 from dofsynth.train.classical import classical_render
 from dofsynth.train.config import AugmentConfig, load
-from dofsynth.train.data import excluded, find_segments, full_res_signed, raw_samples, sample_rng, training_item
+from dofsynth.train.data import full_res_signed, sample_rng, training_item
+from dofsynth.train.segments import excluded, find_segments, raw_samples
 from dofsynth.train.depth import depth_errors, predict_disparity, spline_fit
-from dofsynth.train.models import untouched
+from dofsynth.train.reach import untouched
 
 METHODS = ("network", "classical", "all-in-focus")
 DEPTH_KINDS = {"morph": "morph_prob", "edge_blur": "edge_blur_prob", "noise": "noise_prob",
