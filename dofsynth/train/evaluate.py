@@ -97,7 +97,7 @@ def depth_predictor(depth: str, device: str):
     float32. None for any other `depth`."""
     if not depth.startswith(PREDICTED):
         return None
-    depth_corruption(depth, AugmentConfig())  # the run is there
+    depth_corruption(depth, AugmentConfig())  # the run is there (a clear error, for callers other than eval)
     run = depth[len(PREDICTED):]
     model, cfg = load_model(run, device)
     if cfg.train.task != "depth":
@@ -187,8 +187,11 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
             item = training_item(raw, cfg, rng, crop=None, target=t, augment=augment, disparity=given)
             target = to_srgb(_hwc(item["target"]))
             image = to_srgb(_hwc(item["image"]))
-            band = edge_band(clean[: target.shape[0], : target.shape[1]], item["max_coc"])
-            signed = torch.from_numpy(clean[: target.shape[0], : target.shape[1]] - np.float32(item["focus"]))
+            truth = clean[: target.shape[0], : target.shape[1]]  # (the item is trimmed to a multiple of 2**levels)
+            disparity = _hwc(item["disparity"])[:, :, 0]  # what everyone is given
+            depth_mae = float(np.abs(disparity - truth).mean())
+            band = edge_band(truth, item["max_coc"])
+            signed = torch.from_numpy(truth - np.float32(item["focus"]))
             same = untouched(signed[None, None], float(item["max_coc"]))[0, 0].numpy()  # no blur reaches, by the clean depth
             with torch.inference_mode():
                 one = {k: (v[None].to(device) if torch.is_tensor(v) else [v]) for k, v in item.items()
@@ -197,12 +200,10 @@ def evaluate_run(run_dir: str | Path, data_dir: str | Path, *, split: str = "tes
                                 **full_res_signed(one, cfg))
             outputs = {"network": to_srgb(_hwc(high[0])), "all-in-focus": image}
             if classical:
-                outputs["classical"] = classical_render(image, _hwc(item["disparity"])[:, :, 0], item["focus"],
-                                                        item["max_coc"], record)
+                outputs["classical"] = classical_render(image, disparity, item["focus"], item["max_coc"], record)
             for method, out in outputs.items():
                 items.append({"key": item["key"], "target": t, "method": method, **_metrics(out, target, band, same),
-                              "depth_mae": float(np.abs(_hwc(item["disparity"])[:, :, 0]
-                                                        - clean[: target.shape[0], : target.shape[1]]).mean())})
+                              "depth_mae": depth_mae})
     if not items:
         raise ValueError(f"{data_dir}/{split}: no samples to evaluate")
     table = []
