@@ -22,7 +22,8 @@ from dofsynth.io import decode_image
 from dofsynth.train.augment import corrupt_disparity, layers_from_record
 from dofsynth.train.config import AugmentConfig
 from dofsynth.train.segments import find_segments, raw_samples
-from dofsynth.train.evaluate import DEPTH_KINDS, depth_corruption, depth_predictor
+from dofsynth.train.estimates import depth_predictor
+from dofsynth.train.evaluate import DEPTH_KINDS, depth_corruption
 
 
 def main() -> None:

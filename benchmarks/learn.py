@@ -173,6 +173,9 @@ DEEPLENS = {"kind": "deeplens", "feat_channels": 8, "kp_width": 16, "kp_depth": 
             "up_width": 16}
 LONG = 1200  # steps of the longer hybrid runs
 LONGER = 2400  # steps of the longest gated one
+# with --depth predicted:RUN, the share of training items given RUN's estimates (the rest: the realistic
+# errors); RUN trained on these train scenes, so its estimates of them are better than of the test's
+ESTIMATE_SHARE = 0.5
 METRICS = [("psnr", "PSNR"), ("ssim", "SSIM")]
 REGION_NAMES = [("", "overall"), ("_edge", "edge band"), ("_out", "outside it"), ("_same", "target = input")]
 
@@ -211,6 +214,10 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
              **{f"hybrid gated to the edge bands, {n} steps": replace(replace(base, "model", gate="edges"), "train",
                                                                       max_steps=n, checkpoint_interval=n)
                 for n in (LONG, LONGER)}}
+    if depth.startswith("predicted:"):  # given an estimator's depth: also trained on it, half of the items
+        gated = replace(replace(base, "model", gate="edges"), "train", max_steps=LONG, checkpoint_interval=LONG)
+        kinds[f"hybrid gated, trained on the estimates (half the items), {LONG} steps"] = replace(
+            gated, "augment", predicted_prob=ESTIMATE_SHARE, predicted_run=str(Path(depth[len("predicted:"):]).resolve()))
     if only:
         kinds = {k: v for k, v in kinds.items() if only in k}
     tables: dict[str, list[dict]] = {}

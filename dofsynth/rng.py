@@ -49,6 +49,7 @@ STREAMS = {
     "depth_item": 5,    # one depth-training item's crop and augmentation (keys: epoch, batch, slot)
     "init": 6,          # the initial weights (no keys)
     "loader": 7,        # the torch DataLoader's own generator (no keys)
+    "estimate": 8,      # whether a training item takes the depth run's estimate (keys: epoch, split id, index)
 }
 
 

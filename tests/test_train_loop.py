@@ -414,6 +414,18 @@ def test_eval_gives_every_run_and_method_the_depth_asked_for(setup, tmp_path):
     assert main(["eval", str(run), "--data", str(data), "--depth", "fog"]) == 2   # refused before any work
 
 
+def _depth_run(folder: Path):
+    """An untrained small depth network saved as a depth run in `folder`; returns the network."""
+    from dofsynth.train.depth import DepthNet
+
+    torch.manual_seed(0)
+    cfg = from_dict({"train": {"task": "depth"}, "data": {"crop": 32},
+                     "depth": {"backbone": "resnet18", "width": 8, "decoder_width": 16}})
+    net = DepthNet(cfg.depth).eval()
+    checkpoint.save(folder / "ckpt.pt", net, torch.optim.AdamW(net.parameters()), 1, 0, 0, cfg)
+    return net
+
+
 def test_eval_can_give_everyone_what_a_depth_network_predicts(setup, tmp_path):
     """--depth predicted:RUN: the map the depth run predicts from each all-in-focus image, fitted
     to the clean disparity's scale by the 5-knot spline, goes to every method, and its MAE
@@ -421,16 +433,12 @@ def test_eval_can_give_everyone_what_a_depth_network_predicts(setup, tmp_path):
     from dofsynth.codecs import decode_depth
     from dofsynth.io import decode_image
     from dofsynth.train.segments import find_segments, raw_samples
-    from dofsynth.train.depth import DepthNet, depth_errors, predict_disparity
+    from dofsynth.train.depth import depth_errors, predict_disparity
     from dofsynth.train.evaluate import evaluate_run
 
     _, data, _, run = setup
-    torch.manual_seed(0)
-    cfg = from_dict({"train": {"task": "depth"}, "data": {"crop": 32},
-                     "depth": {"backbone": "resnet18", "width": 8, "decoder_width": 16}})
-    net = DepthNet(cfg.depth).eval()
     depth_run = tmp_path / "depth-run"
-    checkpoint.save(depth_run / "ckpt.pt", net, torch.optim.AdamW(net.parameters()), 1, 0, 0, cfg)
+    net = _depth_run(depth_run)
     kw = {"write": False, "device": "cpu"}
     got = evaluate_run(run, data, depth=f"predicted:{depth_run}", **kw)
     want = []  # each target's: its sample's fitted prediction against the clean map
@@ -445,6 +453,59 @@ def test_eval_can_give_everyone_what_a_depth_network_predicts(setup, tmp_path):
     with pytest.raises(ValueError, match="not of the depth network"):
         evaluate_run(run, data, depth=f"predicted:{run}", **kw)
     assert main(["eval", str(run), "--data", str(data), "--depth", f"predicted:{tmp_path / 'none'}"]) == 2
+
+
+def test_a_run_trains_on_a_depth_networks_estimates(setup, tmp_path, monkeypatch):
+    """[augment] predicted_prob: that share of the items (its own stream) takes the depth run's
+    fitted estimate as its disparity, made once per run into RUN/depth-estimates.npz (every
+    train sample, within 1/65535 of the estimate) and reused on resume; the rest are corrupted
+    as before. A missing run key or estimates file is refused."""
+    from dofsynth.codecs import decode_depth
+    from dofsynth.train import estimates
+    from dofsynth.train.data import make_loader, resolve
+    from dofsynth.train.segments import find_segments, raw_samples
+
+    _, data, _, _ = setup
+    depth_run = tmp_path / "depth"
+    _depth_run(depth_run)
+    predict = estimates.depth_predictor(f"predicted:{depth_run}", "cpu")
+    want = {}
+    for raw in raw_samples(find_segments(data, "train"), "train"):
+        want[raw["__key__"]] = predict(raw, decode_depth(raw["depth.exr"], "depth"))
+    assert len(want) == 8
+
+    # through `dofsynth train`, the run key relative to the config's folder; stopped after step 1
+    cfg_path = tmp_path / "configs" / "est.toml"
+    cfg_path.parent.mkdir()
+    cfg_path.write_text(to_toml(tiny_config(augment={"predicted_prob": 1.0, "predicted_run": "../depth"},
+                                            train={"max_steps": 2})))
+    run = tmp_path / "run"
+    args = ["train", str(cfg_path), "--data", str(data), "--run", str(run), "--device", "cpu"]
+    assert main(args + ["--steps", "1"]) == 0
+    cfg = resolve(load(run / "config.toml"), data)
+    assert Path(cfg.augment.predicted_run).resolve() == depth_run.resolve()
+    with np.load(run / estimates.ESTIMATES) as held:
+        assert set(held.files) == set(want)
+        for key, est in want.items():
+            assert np.abs(held[key] / 65535.0 - est).max() <= 0.5 / 65535 + 1e-7
+    # every item takes its sample's estimate (crop 32 = the whole image)
+    ds, _ = make_loader(data, "train", cfg, train=False, seed=0, part="all", estimates=run / estimates.ESTIMATES)
+    items = list(ds)
+    assert len(items) == 8 and all(json.loads(it["corruption"]) == {"given": True} for it in items)
+    for it in items:
+        assert np.abs(it["disparity"][0].numpy() - want[it["key"]]).max() <= 1e-5
+    # half: some items take it, the others are corrupted from the clean map as before
+    half = replace(cfg, "augment", predicted_prob=0.5)
+    ds, _ = make_loader(data, "train", half, train=False, seed=0, estimates=run / estimates.ESTIMATES)
+    given = [json.loads(it["corruption"]) == {"given": True} for it in ds]
+    assert 0 < sum(given) < len(given)
+    # resumed: the estimates are not made again
+    monkeypatch.setattr(estimates, "depth_predictor", lambda *a: pytest.fail("estimates made again"))
+    assert main(args) == 0 and checkpoint.load(run / "ckpt.pt")["step"] == 2
+    with pytest.raises(ValueError, match="estimates file"):
+        make_loader(data, "train", cfg, train=True, seed=0)
+    with pytest.raises(ValueError, match="predicted_run"):
+        tiny_config(augment={"predicted_prob": 0.5})
 
 
 def test_the_classical_baseline_renders_with_the_targets_highlight_boost():

@@ -68,6 +68,9 @@ class AugmentConfig:
     remap_scale: Range = key((0.7, 1.3), lo=0.0)
     remap_shift: Range = key((-0.15, 0.15))
     remap_gamma: Range = key((0.6, 1.6), lo=0.0, lo_open=True)
+    # a depth network's own errors (dofsynth.train.estimates): per sample, instead of the kinds above
+    predicted_prob: float = key(0.0, lo=0.0, hi=1.0)                # the estimate of predicted_run
+    predicted_run: str = key("")                                    # a depth run folder ([train] task = "depth")
 
 
 @dataclass_kw
@@ -168,6 +171,9 @@ def _check(cfg: Config, source: str) -> None:
         raise error(source, "data.crop", f"a multiple of 2**levels = {2 ** d.levels}", d.crop)
     if d.target != "random" and not d.target.isdigit():
         raise error(source, "data.target", "'random' or a target index", d.target)
+    if cfg.augment.predicted_prob > 0 and not cfg.augment.predicted_run:
+        raise error(source, "augment.predicted_run", "a depth run folder when augment.predicted_prob > 0",
+                    cfg.augment.predicted_run)
     if cfg.model.gate != "none" and cfg.model.kind != "hybrid":
         raise error(source, "model.gate", "'none' unless model.kind = 'hybrid' (it gates the hybrid's correction)",
                     cfg.model.gate)
@@ -184,10 +190,12 @@ def load(path: str | Path) -> Config:
     missing file raises FileNotFoundError naming it."""
     path = recipe_path(path)
     cfg = from_dict(parse_toml(read_text(path, "training config"), str(path)), str(path))
-    here = Path(path).resolve().parent
+    here = Path(path).resolve().parent  # paths in a config are relative to its folder
     paths = {k: str(here / v) for k in ("weights", "rgbd", "mattes")
              if (v := getattr(cfg.depth, k)) and not Path(v).is_absolute()}
-    return replace(cfg, "depth", **paths) if paths else cfg
+    cfg = replace(cfg, "depth", **paths) if paths else cfg
+    run = cfg.augment.predicted_run
+    return replace(cfg, "augment", predicted_run=str(here / run)) if run and not Path(run).is_absolute() else cfg
 
 
 def replace(cfg: Config, table_name: str, **kw) -> Config:

@@ -54,6 +54,7 @@ from dofsynth.rng import SPLIT_ID, stream_int, stream_rng
 from dofsynth.train.augment import corrupt_disparity, layers_from_record
 from dofsynth.train.classical import classical_input, look_of
 from dofsynth.train.config import Config, replace
+from dofsynth.train.estimates import Estimates
 from dofsynth.train.models import signed_disparity
 from dofsynth.train.segments import Segment, excluded, find_segments, raw_samples
 
@@ -206,11 +207,15 @@ class DofShards(IterableDataset):
     """
 
     def __init__(self, segments: list[Segment], cfg: Config, *, train: bool, seed: int, split: str,
-                 rank: int | None = None, world: int | None = None):
+                 rank: int | None = None, world: int | None = None, estimates: str | Path | None = None):
         if cfg.model.coc_ref <= 0:
             raise ValueError("model.coc_ref must be resolved (> 0) before loading data; see config.resolve")
+        if cfg.augment.predicted_prob > 0 and estimates is None:
+            raise ValueError("augment.predicted_prob > 0: the depth estimates file is needed "
+                             "(dofsynth.train.estimates.write_estimates)")
         self.segments, self.cfg, self.train, self.seed, self.split = list(segments), cfg, train, seed, split
         self.rank, self.world = rank, world
+        self.estimates = Estimates(estimates) if cfg.augment.predicted_prob > 0 else None
         self.epoch, self.skip_batches = 0, 0
 
     def set_epoch(self, epoch: int, skip_batches: int = 0) -> None:
@@ -252,8 +257,9 @@ class DofShards(IterableDataset):
             pos, raw = pos_raw
             if pos in skipped:  # will be dropped: not decoded
                 return pos, None
-            index = json.loads(raw["json"])["index"]
-            return pos, decode_crop(raw, self.cfg, sample_rng(self.seed, epoch, self.split, int(index)), crop=crop)
+            index = int(json.loads(raw["json"])["index"])
+            return pos, decode_crop(raw, self.cfg, sample_rng(self.seed, epoch, self.split, index), crop=crop,
+                                    disparity=self._estimate(raw["__key__"], epoch, index))
 
         shuffled = self.train and self.cfg.data.shuffle_buffer > 1
         seed = stream_int(self.seed, "shuffle", self.epoch, rank, worker)
@@ -264,6 +270,14 @@ class DofShards(IterableDataset):
             stream = self._shuffle(stream, seed)
         for _, c in islice(stream, skip, None):
             yield finish_item(c, self.cfg)
+
+    def _estimate(self, key: str, epoch: int, index: int) -> np.ndarray | None:
+        """The depth run's estimate of the sample, with probability [augment] predicted_prob
+        (its own stream), else None: the corruption kinds then make the disparity."""
+        p = self.cfg.augment.predicted_prob
+        if p <= 0 or stream_rng(self.seed, "estimate", epoch, SPLIT_ID[self.split], index).random() >= p:
+            return None
+        return self.estimates(key)
 
     def _shuffle(self, items, seed: int):
         size = self.cfg.data.shuffle_buffer
@@ -299,10 +313,11 @@ def quiet_worker(_worker_id: int) -> None:
 
 
 def make_loader(data_dir: str | Path, split: str, cfg: Config, *, train: bool, seed: int, part: str = "all",
-                pin_memory: bool = False) -> tuple[DofShards, DataLoader]:
-    """The dataset and a DataLoader of [data] batch_size / num_workers over a split's `part`."""
+                pin_memory: bool = False, estimates: str | Path | None = None) -> tuple[DofShards, DataLoader]:
+    """The dataset and a DataLoader of [data] batch_size / num_workers over a split's `part`
+    (estimates: the depth estimates file, with [augment] predicted_prob > 0)."""
     segs = find_segments(data_dir, split, part, cfg.data.val_share, excluded(cfg, data_dir))
-    ds = DofShards(segs, cfg, train=train, seed=seed, split=split)
+    ds = DofShards(segs, cfg, train=train, seed=seed, split=split, estimates=estimates)
     workers = cfg.data.num_workers
     loader = DataLoader(ds, batch_size=cfg.data.batch_size, num_workers=workers, pin_memory=pin_memory,
                         prefetch_factor=4 if workers else None, worker_init_fn=quiet_worker,

@@ -40,12 +40,13 @@ from dofsynth.color import linear_to_srgb
 from dofsynth.files import atomic_write_bytes, canonical_json, csv_text
 from dofsynth.io import decode_image, normalize_disparity
 from dofsynth.codecs import decode_depth
-from dofsynth.train.checkpoint import load_model, weights_path
+from dofsynth.train.checkpoint import load_model
 from dofsynth.train.classical import classical_render
 from dofsynth.train.config import AugmentConfig, load
 from dofsynth.train.data import full_res_signed, sample_rng, training_item
 from dofsynth.train.segments import excluded, find_segments, raw_samples
-from dofsynth.train.depth import depth_errors, predict_disparity, spline_fit
+from dofsynth.train.depth import depth_errors, predict_disparity
+from dofsynth.train.estimates import PREDICTED, check_depth_run, depth_predictor
 from dofsynth.train.reach import untouched
 
 METHODS = ("network", "classical", "all-in-focus")
@@ -59,17 +60,11 @@ REALISTIC = {"morph_prob": 0.5, "morph_kernel": (3, 21), "swap_prob": 0.15, "fil
 EDGE_STEP = 0.02  # a depth edge: neighbouring disparities differ by more (ramps change far less per pixel)
 
 
-PREDICTED = "predicted:"  # depth = "predicted:RUN": what the depth network of RUN predicts
-
-
 def depth_corruption(depth: str, run_augment: AugmentConfig) -> AugmentConfig:
     """The corruption named by `depth` (see the module docstring) as an AugmentConfig; for
     "predicted:RUN" none (`depth_predictor` gives the map), once RUN is found to hold weights."""
     if depth.startswith(PREDICTED):
-        run = depth[len(PREDICTED):]
-        if not run or not weights_path(run).is_file():
-            raise ValueError(f"depth {depth!r}: no trained depth run at {run!r} (dofsynth train with [train] "
-                             "task = \"depth\")")
+        check_depth_run(depth[len(PREDICTED):], f"depth {depth!r}")
         return AugmentConfig(enabled=False)
     if depth == "gt":
         return AugmentConfig(enabled=False)
@@ -86,28 +81,6 @@ def depth_corruption(depth: str, run_augment: AugmentConfig) -> AugmentConfig:
         raise ValueError(f"depth must be gt, run, realistic, one of {', '.join(DEPTH_KINDS)}, predicted:RUN (a "
                          f"depth run), a .toml file with an [augment] table or a shipped training config's "
                          f"name, got {depth!r}") from None
-
-
-def depth_predictor(depth: str, device: str):
-    """For depth = "predicted:RUN", a function (raw sample, its clean disparity (H, W)) -> the
-    disparity the depth network of RUN predicts from the sample's all-in-focus image, mapped
-    onto the clean map's scale by the 5-knot spline fit (`depth.spline_fit`: the scale, offset
-    and monotone warp a relative estimate leaves open, as the paper's depth errors are
-    measured; its boundaries, holes and smoothing stay the network's), clipped to [0, 1],
-    float32. None for any other `depth`."""
-    if not depth.startswith(PREDICTED):
-        return None
-    depth_corruption(depth, AugmentConfig())  # the run is there (a clear error, for callers other than eval)
-    run = depth[len(PREDICTED):]
-    model, cfg = load_model(run, device)
-    if cfg.train.task != "depth":
-        raise ValueError(f"depth {depth!r}: {run} is a run of the DoF networks, not of the depth network")
-
-    def predict(raw: dict, clean: np.ndarray) -> np.ndarray:
-        image = decode_image(raw["aif.png"], f"{raw['__key__']}.aif.png")[:, :, :3]
-        pred = predict_disparity(model, image, cfg.data.crop)
-        return np.clip(spline_fit(pred, clean), 0.0, 1.0).astype(np.float32)
-    return predict
 
 
 def _hwc(t: torch.Tensor) -> np.ndarray:

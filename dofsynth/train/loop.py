@@ -43,6 +43,7 @@ from dofsynth.train.config import Config, from_dict, to_toml
 from dofsynth.train.data import from_workers, full_res_signed, make_loader, resolve
 from dofsynth.train.depth import depth_loss, depth_mae, load_backbone
 from dofsynth.train.depth_data import make_depth_loader
+from dofsynth.train.estimates import ESTIMATES, write_estimates
 from dofsynth.train.loss import deeplens_loss
 
 LOG_FIELDS = ["step", "epoch", "lr", "loss", "loss_low", "loss_high", "loss_depth", "loss_seg",
@@ -226,7 +227,16 @@ def train(cfg: Config, data_dir: str | Path, run_dir: str | Path, *, device: str
         model = DistributedDataParallel(model, device_ids=[torch.device(device).index] if cuda else None)
 
     # -- data ------------------------------------------------------------------------------------
-    loader_of = make_depth_loader if depth_task else (lambda d, *a, **k: make_loader(d, "train", *a, **k))
+    estimates = None
+    if not depth_task and cfg.augment.predicted_prob > 0:  # the depth run's estimates, made once per run
+        if master:
+            say(f"depth estimates of {cfg.augment.predicted_run} -> {run_dir / ESTIMATES}")
+            write_estimates(cfg, data_dir, run_dir, device)
+        if ddp:
+            dist.barrier()
+        estimates = run_dir / ESTIMATES
+    loader_of = make_depth_loader if depth_task else (
+        lambda d, *a, **k: make_loader(d, "train", *a, estimates=estimates, **k))
     train_ds, train_loader = loader_of(data_dir, cfg, train=True, seed=t.seed, part="fit", pin_memory=cuda)
     eval_loader = None
     if cfg.data.val_share > 0 and t.eval_interval > 0:
