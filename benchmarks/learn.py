@@ -28,7 +28,9 @@ under an hour.
    trained with --seeds seeds; one table on
    the test split, everyone given the same realistic depth: PSNR and SSIM overall, in the edge
    band, outside it and where no blur reaches (the target is the input), the mean of the seeds
-   and their range (--depth: another disparity, e.g. predicted:RUN, a depth run's estimates).
+   and their range (--depth: another disparity, e.g. predicted:RUN, a depth run's estimates;
+   given one, also the gated hybrid trained with half its items given RUN's estimates of the
+   train scenes, [augment] predicted_prob = 0.5).
    About 2-4 minutes per run of 400 steps, 11 of 1200, 22 of 2400 (2 cores), 3 hours in all.
 Every size (image, crops, low resolution, steps, batch, parameters) is printed. Runs go to
 OUT/runs/<config hash>; a finished run is reused (delete it to train again).

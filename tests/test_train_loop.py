@@ -485,7 +485,7 @@ def test_a_run_trains_on_a_depth_networks_estimates(setup, tmp_path, monkeypatch
     cfg = resolve(load(run / "config.toml"), data)
     assert Path(cfg.augment.predicted_run).resolve() == depth_run.resolve()
     with np.load(run / estimates.ESTIMATES) as held:
-        assert set(held.files) == set(want)
+        assert set(held.files) == set(want) | {"__shards__"}
         for key, est in want.items():
             assert np.abs(held[key] / 65535.0 - est).max() <= 0.5 / 65535 + 1e-7
     # every item takes its sample's estimate (crop 32 = the whole image)
@@ -502,6 +502,11 @@ def test_a_run_trains_on_a_depth_networks_estimates(setup, tmp_path, monkeypatch
     # resumed: the estimates are not made again
     monkeypatch.setattr(estimates, "depth_predictor", lambda *a: pytest.fail("estimates made again"))
     assert main(args) == 0 and checkpoint.load(run / "ckpt.pt")["step"] == 2
+    monkeypatch.undo()  # estimates of other shards (a data set made again) are made again
+    np.savez(run / estimates.ESTIMATES, __shards__=np.array("train-000000.tar 0123 0 8"))
+    estimates.write_estimates(cfg, data, run)
+    with np.load(run / estimates.ESTIMATES) as held:
+        assert set(held.files) == set(want) | {"__shards__"}
     with pytest.raises(ValueError, match="estimates file"):
         make_loader(data, "train", cfg, train=True, seed=0)
     with pytest.raises(ValueError, match="predicted_run"):

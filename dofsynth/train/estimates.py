@@ -8,7 +8,7 @@ and monotone warp a relative estimate leaves open; its boundaries, holes and smo
 network's) and clipped to [0, 1]: float32 normalized disparity (H, W). Training makes every
 train-split sample's estimate once, before its first step, into RUN_DIR/depth-estimates.npz
 (one uint16 member per sample key, d * 65535 rounded: within 8e-6 of the float; written
-atomically, reused on resume when it holds every key), so its loader reads them instead of
+atomically, reused on resume while the data set's train shards are the same), so its loader reads them instead of
 running the depth network.
 """
 from __future__ import annotations
@@ -30,6 +30,7 @@ from dofsynth.train.segments import excluded, find_segments, raw_samples
 PREDICTED = "predicted:"  # depth = "predicted:RUN": what the depth network of RUN predicts
 ESTIMATES = "depth-estimates.npz"  # in a DoF run trained on estimates: one member per train sample
 _SCALE = 65535.0
+_SHARDS = "__shards__"  # the member naming the shards the estimates are of
 
 
 def check_depth_run(run: str, what: str) -> None:
@@ -65,14 +66,15 @@ def write_estimates(cfg: Config, data_dir: str | Path, run_dir: str | Path, devi
         return None
     path = Path(run_dir) / ESTIMATES
     segments = find_segments(data_dir, "train", exclude=excluded(cfg, data_dir))
-    want = sum(s.hi - s.lo for s in segments)
+    # the shards' names and manifest hashes: a data set made again is estimated again
+    shards = "\n".join(f"{Path(s.path).name} {s.sha256} {s.lo} {s.hi}" for s in segments)
     if path.is_file():
         with np.load(path) as held:
-            if len(held.files) >= want:
+            if _SHARDS in held.files and str(held[_SHARDS]) == shards:
                 return path
     predict = depth_predictor(PREDICTED + a.predicted_run, device)
-    maps = {}
-    with progress.bar(want, "depth estimates") as bar:
+    maps = {_SHARDS: np.array(shards)}
+    with progress.bar(sum(s.hi - s.lo for s in segments), "depth estimates") as bar:
         for raw in raw_samples(segments, "train"):
             clean = decode_depth(raw["depth.exr"], f"{raw['__key__']}.depth.exr")
             maps[raw["__key__"]] = np.round(predict(raw, clean) * _SCALE).astype(np.uint16)
