@@ -8,19 +8,19 @@ and monotone warp a relative estimate leaves open; its boundaries, holes and smo
 network's) and clipped to [0, 1]: float32 normalized disparity (H, W). Training makes every
 train-split sample's estimate once, before its first step, into RUN_DIR/depth-estimates.npz
 (one uint16 member per sample key, d * 65535 rounded: within 8e-6 of the float; written
-atomically, reused on resume while the data set's train shards are the same), so its loader reads them instead of
-running the depth network.
+atomically, one map in memory at a time; reused on resume while the data set's train shards
+are the same), so its loader reads them instead of running the depth network.
 """
 from __future__ import annotations
 
-import io
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from dofsynth import progress
 from dofsynth.codecs import decode_depth
-from dofsynth.files import atomic_write_bytes
+from dofsynth.files import AtomicFile
 from dofsynth.io import decode_image
 from dofsynth.train.checkpoint import load_model, weights_path
 from dofsynth.train.config import Config
@@ -59,8 +59,8 @@ def depth_predictor(depth: str, device: str):
 
 def write_estimates(cfg: Config, data_dir: str | Path, run_dir: str | Path, device: str = "cpu") -> Path | None:
     """RUN_DIR/depth-estimates.npz with the estimate of every train-split sample of `data_dir`
-    by the depth run [augment] predicted_run, made unless a complete one is there; None when
-    [augment] predicted_prob is 0."""
+    by the depth run [augment] predicted_run, made unless one of the same shards is there; None
+    when [augment] predicted_prob is 0."""
     a = cfg.augment
     if a.predicted_prob <= 0:
         return None
@@ -73,16 +73,20 @@ def write_estimates(cfg: Config, data_dir: str | Path, run_dir: str | Path, devi
             if _SHARDS in held.files and str(held[_SHARDS]) == shards:
                 return path
     predict = depth_predictor(PREDICTED + a.predicted_run, device)
-    maps = {_SHARDS: np.array(shards)}
-    with progress.bar(sum(s.hi - s.lo for s in segments), "depth estimates") as bar:
+    # an .npz as np.savez writes it, one member at a time (memory stays one map at any size of set)
+    with AtomicFile(path) as fh, zipfile.ZipFile(fh, "w", allowZip64=True) as zf, \
+            progress.bar(sum(s.hi - s.lo for s in segments), "depth estimates") as bar:
+        _member(zf, _SHARDS, np.array(shards))
         for raw in raw_samples(segments, "train"):
             clean = decode_depth(raw["depth.exr"], f"{raw['__key__']}.depth.exr")
-            maps[raw["__key__"]] = np.round(predict(raw, clean) * _SCALE).astype(np.uint16)
+            _member(zf, raw["__key__"], np.round(predict(raw, clean) * _SCALE).astype(np.uint16))
             bar.update()
-    buf = io.BytesIO()
-    np.savez(buf, **maps)
-    atomic_write_bytes(path, buf.getvalue())
     return path
+
+
+def _member(zf: zipfile.ZipFile, name: str, array: np.ndarray) -> None:
+    with zf.open(f"{name}.npy", "w", force_zip64=True) as f:
+        np.lib.format.write_array(f, array, allow_pickle=False)
 
 
 class Estimates:
