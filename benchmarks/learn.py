@@ -24,8 +24,9 @@ under an hour.
    the paper's networks on the same data (c = 32, and the paper's ablations: c = 8 and 16, and
    trained on the clean depth), the hybrid in linear light ([data] color), the
    hybrid trained for 1200 steps instead of 400, and so trained with its correction gated to
-   the band around the given depth's edges ([model] gate = "edges"), also for 2400 steps, each
-   trained with --seeds seeds; one table on
+   the band around the given depth's edges ([model] gate = "edges"), also for 2400 steps and
+   with its U-Net one level deeper (kp_depth 4, 1200 steps), each trained with --seeds seeds;
+   one table on
    the test split, everyone given the same realistic depth: PSNR and SSIM overall, in the edge
    band, outside it and where no blur reaches (the target is the input), the mean of the seeds
    and their range (--depth: another disparity, e.g. predicted:RUN, a depth run's estimates;
@@ -216,8 +217,11 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
              **{f"hybrid gated to the edge bands, {n} steps": replace(replace(base, "model", gate="edges"), "train",
                                                                       max_steps=n, checkpoint_interval=n)
                 for n in (LONG, LONGER)}}
+    gated = replace(replace(base, "model", gate="edges"), "train", max_steps=LONG, checkpoint_interval=LONG)
+    # its U-Net one level deeper: twice the reach (an edge band is up to 2 x 24 px wide)
+    kinds[f"hybrid gated, U-Net depth {base.model.kp_depth + 1}, {LONG} steps"] = replace(
+        gated, "model", kp_depth=base.model.kp_depth + 1)
     if depth.startswith("predicted:"):  # given an estimator's depth: also trained on it, half of the items
-        gated = replace(replace(base, "model", gate="edges"), "train", max_steps=LONG, checkpoint_interval=LONG)
         kinds[f"hybrid gated, trained on the estimates (half the items), {LONG} steps"] = replace(
             gated, "augment", predicted_prob=ESTIMATE_SHARE, predicted_run=str(Path(depth[len("predicted:"):]).resolve()))
     if only:
