@@ -13,7 +13,7 @@ import torch
 
 from dofsynth.cli import main
 from dofsynth.io import normalize_disparity, read_depth, read_image
-from dofsynth.train.config import from_dict, load, replace
+from dofsynth.train.config import Config, from_dict, load, replace
 from dofsynth.train.depth import (DepthNet, depth_errors, depth_loss, load_backbone, minmax,
                                   predict_disparity, spline_fit)
 from dofsynth.train.depth_data import DepthMix, Item, fit_crop, load_item, make_depth_loader, pair_files, sources
@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def small(**depth) -> "Config":  # noqa: F821
+def small(**depth) -> Config:
     base = {"backbone": "resnet18", "width": 8, "decoder_width": 16, **depth}
     return from_dict({"train": {"task": "depth", "max_steps": 20, "warmup_steps": 2, "lr": 3e-3,
                                 "log_interval": 5, "eval_interval": 10, "checkpoint_interval": 10},

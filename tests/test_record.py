@@ -148,8 +148,6 @@ def _chunks(png: bytes) -> list[bytes]:
 
 
 def test_image_members_say_srgb_and_the_depth_member_says_what_it_is(setup):
-    import io
-
     import OpenEXR
 
     m = setup[3][0]

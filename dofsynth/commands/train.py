@@ -1,8 +1,6 @@
 """`dofsynth train CONFIG --data OUT --run RUN`: train (or continue training) the DeepLens networks."""
 from __future__ import annotations
 
-import argparse
-
 from dofsynth.commands import int_at_least
 
 

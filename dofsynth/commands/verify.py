@@ -1,7 +1,6 @@
 """`dofsynth verify OUT`: check a data set folder against its manifest and its own records."""
 from __future__ import annotations
 
-import argparse
 import sys
 
 from dofsynth.commands import int_at_least
