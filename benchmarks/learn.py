@@ -207,23 +207,26 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
           f"lr {base.train.lr:g}, depth errors of [augment] (= eval --depth realistic), seeds {seeds}; "
           f"test: {'all' if limit is None else limit} scenes, depth {depth}, evaluation seed 12345")
     paper = replace(base, "model", **DEEPLENS)
+    gated = replace(base, "model", gate="edges")
+
+    def steps(cfg, n: int):
+        return replace(cfg, "train", max_steps=n, checkpoint_interval=n)
+
     kinds = {"hybrid": base, "deeplens (paper networks)": paper,
              # the paper's ablations of its networks: c = 8 and 16 feature channels (c = 32 above),
              # and trained on the clean depth (tested, as all, on the realistic errors)
              **{f"deeplens, c = {4 * fc}": replace(paper, "model", feat_channels=fc) for fc in (2, 4)},
              "deeplens, trained on clean depth": replace(paper, "augment", enabled=False),
              "hybrid, color = linear": replace(base, "data", color="linear"),
-             f"hybrid, {LONG} steps": replace(base, "train", max_steps=LONG, checkpoint_interval=LONG),
-             **{f"hybrid gated to the edge bands, {n} steps": replace(replace(base, "model", gate="edges"), "train",
-                                                                      max_steps=n, checkpoint_interval=n)
-                for n in (LONG, LONGER)}}
-    gated = replace(replace(base, "model", gate="edges"), "train", max_steps=LONG, checkpoint_interval=LONG)
-    # its U-Net one level deeper: twice the reach (an edge band is up to 2 x 24 px wide)
-    kinds[f"hybrid gated, U-Net depth {base.model.kp_depth + 1}, {LONG} steps"] = replace(
-        gated, "model", kp_depth=base.model.kp_depth + 1)
+             f"hybrid, {LONG} steps": steps(base, LONG),
+             **{f"hybrid gated to the edge bands, {n} steps": steps(gated, n) for n in (LONG, LONGER)},
+             # its U-Net one level deeper: twice the reach (an edge band is up to 2 x 24 px wide)
+             f"hybrid gated, U-Net depth {base.model.kp_depth + 1}, {LONG} steps":
+                 steps(replace(gated, "model", kp_depth=base.model.kp_depth + 1), LONG)}
     if depth.startswith("predicted:"):  # given an estimator's depth: also trained on it, half of the items
-        kinds[f"hybrid gated, trained on the estimates (half the items), {LONG} steps"] = replace(
-            gated, "augment", predicted_prob=ESTIMATE_SHARE, predicted_run=str(Path(depth[len("predicted:"):]).resolve()))
+        kinds[f"hybrid gated, trained on the estimates (half the items), {LONG} steps"] = steps(replace(
+            gated, "augment", predicted_prob=ESTIMATE_SHARE, predicted_run=str(Path(depth[len("predicted:"):]).resolve())),
+            LONG)
     if only:
         kinds = {k: v for k, v in kinds.items() if only in k}
     tables: dict[str, list[dict]] = {}

@@ -28,6 +28,10 @@ DATA_RECIPES = {"train-tiny.toml": "smoke.toml", "train-demo.toml": "demo.toml",
                 "train-depth-learn.toml": "learn.toml", "train-depth.toml": "deeplens-18k.toml"}
 
 
+# the keys that hold paths, per table: relative ones are taken from the config file's folder (`load`)
+PATH_KEYS = {"augment": ("predicted_run",), "depth": ("weights", "rgbd", "mattes")}
+
+
 @dataclass_kw
 class DataConfig:
     color: str = key("srgb", choices=("srgb", "linear"))  # colour space the networks see and predict
@@ -190,12 +194,12 @@ def load(path: str | Path) -> Config:
     missing file raises FileNotFoundError naming it."""
     path = recipe_path(path)
     cfg = from_dict(parse_toml(read_text(path, "training config"), str(path)), str(path))
-    here = Path(path).resolve().parent  # paths in a config are relative to its folder
-    paths = {k: str(here / v) for k in ("weights", "rgbd", "mattes")
-             if (v := getattr(cfg.depth, k)) and not Path(v).is_absolute()}
-    cfg = replace(cfg, "depth", **paths) if paths else cfg
-    run = cfg.augment.predicted_run
-    return replace(cfg, "augment", predicted_run=str(here / run)) if run and not Path(run).is_absolute() else cfg
+    here = Path(path).resolve().parent
+    for table_name, keys in PATH_KEYS.items():
+        values = getattr(cfg, table_name)
+        paths = {k: str(here / v) for k in keys if (v := getattr(values, k)) and not Path(v).is_absolute()}
+        cfg = replace(cfg, table_name, **paths) if paths else cfg
+    return cfg
 
 
 def replace(cfg: Config, table_name: str, **kw) -> Config:

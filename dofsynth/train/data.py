@@ -58,6 +58,7 @@ from dofsynth.train.estimates import Estimates
 from dofsynth.train.models import signed_disparity
 from dofsynth.train.segments import Segment, excluded, find_segments, raw_samples
 
+
 def area_downsample(x: np.ndarray, factor: int) -> np.ndarray:
     """Box-mean downsample of (H, W[, C]) by an integer factor (H, W multiples of it)."""
     h, w = x.shape[:2]
