@@ -53,11 +53,15 @@ def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0)
     levels = level_grid(cmin, cmax, level_step, level_ratio)
     if levels.size == 1:
         return levels, np.zeros(cmap.shape, np.int32), np.zeros(cmap.shape, np.float32)
-    n = levels.size
     c = cmap.astype(np.float64)
-    k0 = np.clip(np.searchsorted(levels, c, side="right") - 1, 0, n - 2).astype(np.int32)
-    f = np.clip((c - levels[k0]) / (levels[k0 + 1] - levels[k0]), 0.0, 1.0).astype(np.float32)
-    return levels, k0, f
+    k = np.searchsorted(levels, c, side="right")
+    k -= 1
+    np.clip(k, 0, levels.size - 2, out=k)
+    # f = (c - levels[k]) / (levels[k + 1] - levels[k]), in place, one gather per table
+    c -= levels[:-1].take(k)
+    c /= np.diff(levels).take(k)
+    np.clip(c, 0.0, 1.0, out=c)
+    return levels, k.astype(np.int32), c.astype(np.float32)
 
 
 def level_weight(k0: np.ndarray, f: np.ndarray, k: int) -> np.ndarray:
