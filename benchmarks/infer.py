@@ -4,10 +4,11 @@ in a fresh process (its own peak RSS), with the model as `dofsynth render --mode
 module, whole frames), and the largest difference between the two results.
 
     .venv/bin/python benchmarks/infer.py [--config recipes/train-deeplens.toml] [--threads 2]
-    .venv/bin/python benchmarks/infer.py --config recipes/train-learn-real.toml [--gate]   # the hybrid
+    .venv/bin/python benchmarks/infer.py --config recipes/train-learn-real.toml [--gate] [--near-shift 10]   # the hybrid
 
 Random weights of the config's model (the paper's networks, or the hybrid: its classical render,
-its U-Net at full resolution and, with --gate, the edge weight of `[model] gate = "edges"`) (batch
+its U-Net at full resolution, with --gate the edge weight of `[model] gate = "edges"`, with
+--near-shift its two more classical renders of `[model] near_shift`) (batch
 normalisation given random statistics, so folding it is exercised); a random photo and a
 portrait's disparity (`portrait_disparity`: a near subject in focus before a receding
 background). Peak RSS is the process's own maximum (VmHWM), model, photo and result included.
@@ -39,7 +40,7 @@ def portrait_disparity(side: int):
     return disparity
 
 
-def measure(config: str, side: int, threads: int, prepared: bool, gate: bool = False) -> dict:
+def measure(config: str, side: int, threads: int, prepared: bool, keys: dict | None = None) -> dict:
     """One render in this process: {"cpu", "wall", "peak_mib", "out"} (out: the result)."""
 
     import time
@@ -55,8 +56,8 @@ def measure(config: str, side: int, threads: int, prepared: bool, gate: bool = F
 
     torch.set_num_threads(threads)
     cfg = load(config)
-    if gate:
-        cfg = replace(cfg, "model", gate="edges")
+    if keys:  # [model] keys set on top of the config's
+        cfg = replace(cfg, "model", **keys)
     if cfg.model.coc_ref <= 0 or cfg.infer.low_res_side <= 0:  # what training fills in from its data
         from dofsynth.recipe import load_recipe
 
@@ -87,12 +88,12 @@ def measure(config: str, side: int, threads: int, prepared: bool, gate: bool = F
             "peak_mib": peak_rss_mb(), "out": out}
 
 
-def _child(config: str, side: int, threads: int, prepared: bool, save: str, gate: bool = False) -> dict:
+def _child(config: str, side: int, threads: int, prepared: bool, save: str, model: dict) -> dict:
     code = ("import sys, json, numpy as np; sys.path.insert(0, sys.argv[1]); import infer as b; "
-            "r = b.measure(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == '1', sys.argv[7] == '1'); "
+            "r = b.measure(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == '1', json.loads(sys.argv[7])); "
             "np.save(sys.argv[6], r.pop('out')); print(json.dumps(r))")
     res = subprocess.run([sys.executable, "-c", code, str(ROOT / "benchmarks"), config, str(side), str(threads),
-                          "1" if prepared else "0", save, "1" if gate else "0"], capture_output=True, text=True,
+                          "1" if prepared else "0", save, json.dumps(model)], capture_output=True, text=True,
                          cwd=ROOT)
     if res.returncode:
         raise SystemExit(res.stderr[-3000:])
@@ -109,14 +110,16 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048])
     ap.add_argument("--gate", action="store_true", help='the hybrid with [model] gate = "edges"')
+    ap.add_argument("--near-shift", type=int, default=0, help="the hybrid with [model] near_shift = N (px)")
     args = ap.parse_args(argv)
+    model = {**({"gate": "edges"} if args.gate else {}), **({"near_shift": args.near_shift} if args.near_shift else {})}
     print("| size | model | CPU s | wall s | peak MiB | max difference |\n|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for side in args.sizes:
             rows = {}
             for prepared in (False, True):
                 save = str(Path(tmp) / f"{side}-{int(prepared)}.npy")
-                rows[prepared] = (_child(args.config, side, args.threads, prepared, save, args.gate), np.load(save))
+                rows[prepared] = (_child(args.config, side, args.threads, prepared, save, model), np.load(save))
             diff = float(np.abs(rows[True][1] - rows[False][1]).max())
             for prepared, name in ((False, "as trained, whole frames"), (True, "render --model (for_inference, bands)")):
                 r = rows[prepared][0]

@@ -176,6 +176,7 @@ DEEPLENS = {"kind": "deeplens", "feat_channels": 8, "kp_width": 16, "kp_depth": 
             "up_width": 16}
 LONG = 1200  # steps of the longer hybrid runs
 LONGER = 2400  # steps of the longest gated one
+NEAR_SHIFT = 10  # px: [model] near_shift of the hybrid given grown and shrunk renders
 # with --depth predicted:RUN, the share of training items given RUN's estimates (the rest: the realistic
 # errors); RUN trained on these train scenes, so its estimates of them are better than of the test's
 ESTIMATE_SHARE = 0.5
@@ -222,7 +223,15 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
              **{f"hybrid gated to the edge bands, {n} steps": steps(gated, n) for n in (LONG, LONGER)},
              # its U-Net one level deeper: twice the reach (an edge band is up to 2 x 24 px wide)
              f"hybrid gated, U-Net depth {base.model.kp_depth + 1}, {LONG} steps":
-                 steps(replace(gated, "model", kp_depth=base.model.kp_depth + 1), LONG)}
+                 steps(replace(gated, "model", kp_depth=base.model.kp_depth + 1), LONG),
+             # given two more renders, the given depth's near regions grown and shrunk by as much as
+             # the realistic errors displace an edge ([augment] morph_kernel: up to 21 px wide)
+             f"hybrid gated, near regions shifted {NEAR_SHIFT} px, {LONG} steps":
+                 steps(replace(gated, "model", near_shift=NEAR_SHIFT), LONG),
+             # and without the identity rule: where the given depth's CoC is under 0.5 px the
+             # classical render's slight blur (a 0.4 px kernel keeps 69 % of a pixel) stays
+             f"hybrid gated, near regions shifted {NEAR_SHIFT} px, identity off, {LONG} steps":
+                 steps(replace(gated, "model", near_shift=NEAR_SHIFT, identity=False), LONG)}
     if depth.startswith("predicted:"):  # given an estimator's depth: also trained on it, half of the items
         kinds[f"hybrid gated, trained on the estimates (half the items), {LONG} steps"] = steps(replace(
             gated, "augment", predicted_prob=ESTIMATE_SHARE, predicted_run=str(Path(depth[len("predicted:"):]).resolve())),

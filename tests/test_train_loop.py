@@ -636,6 +636,56 @@ def test_the_untrained_hybrid_is_the_classical_renderer(setup):
         model(one["image"], one["signed_lo"], cfg.data.levels)
 
 
+def test_the_near_regions_grow_and_shrink_by_a_disc_of_the_radius():
+    """classical.near_shifted: a plate of near disparity grown and shrunk by r px, by Euclidean
+    distance (a disc), the far side untouched."""
+    from dofsynth.train.classical import near_shifted
+
+    d = np.full((40, 40), 0.2, np.float32)
+    d[15:25, 15:25] = 0.8
+    grown, shrunk = near_shifted(d, 3)
+    yy, xx = np.mgrid[0:40, 0:40]
+    dist = np.hypot(np.clip(np.maximum(15 - yy, yy - 24), 0, None), np.clip(np.maximum(15 - xx, xx - 24), 0, None))
+    assert np.array_equal(grown == 0.8, dist <= 3.0)  # (the disc of radius 3 px on the pixel grid)
+    assert np.array_equal(shrunk == 0.8, (yy >= 18) & (yy <= 21) & (xx >= 18) & (xx <= 21))
+    assert set(np.unique(grown)) | set(np.unique(shrunk)) == {np.float32(0.2), np.float32(0.8)}
+
+
+def test_a_hybrid_given_shifted_renders_starts_as_the_classical_render_and_can_pick_one(setup):
+    """[model] near_shift: the hybrid's input holds the classical renders from the given depth and
+    from it with its near regions grown and shrunk (the same renders as classical_render's);
+    untrained, its output is the first bit for bit; a head that mixes one of the others in
+    with weight 1 outputs that render."""
+    from dofsynth.train.classical import classical_render, near_shifted
+    from dofsynth.train.data import full_res_signed, training_item
+    from dofsynth.train.segments import find_segments, raw_samples
+    from dofsynth.train.models import HybridNet
+
+    _, data, _, _ = setup
+    cfg = tiny_config(model={"kind": "hybrid", "coc_ref": 4.0, "identity": False, "near_shift": 2})
+    raw = next(raw_samples(find_segments(data, "train"), "train"))
+    item = training_item(raw, cfg, np.random.default_rng(3))
+    rec, image, disparity = json.loads(raw["json"]), item["image"].permute(1, 2, 0).numpy(), item["disparity"][0].numpy()
+    stack = item["classical"].permute(1, 2, 0).numpy()
+    assert stack.shape[2] == 9
+    for k, d in enumerate([disparity, *near_shifted(disparity, 2)]):
+        assert np.array_equal(stack[:, :, 3 * k : 3 * k + 3], classical_render(image, d, item["focus"], item["max_coc"], rec))
+    assert not np.array_equal(stack[:, :, 3:6], stack[:, :, 6:9])  # the grown and the shrunk near regions differ
+    one = {k: (v[None] if torch.is_tensor(v) else [v]) for k, v in item.items()}
+    model = HybridNet(cfg.model).eval()
+    with torch.no_grad():
+        assert torch.equal(model(one["image"], one["signed_lo"], cfg.data.levels, **full_res_signed(one, cfg))[1],
+                           one["classical"][:, :3])
+        for k in (1, 2):  # the head mixes render k in with weight 1, the rest 0
+            torch.nn.init.zeros_(model.head.bias), torch.nn.init.constant_(model.head.bias[2 + k], 1.0)
+            _, high = model(one["image"], one["signed_lo"], cfg.data.levels, **full_res_signed(one, cfg))
+            torch.testing.assert_close(high, one["classical"][:, 3 * k : 3 * k + 3], atol=1e-6, rtol=0)
+        with pytest.raises(ValueError, match=r"classical must be \(B, 9"):
+            model(one["image"], one["signed_lo"], cfg.data.levels, classical=one["classical"][:, :3])
+    with pytest.raises(ValueError, match="model.near_shift"):
+        tiny_config(model={"near_shift": 2})  # the paper's networks have no classical input
+
+
 def test_the_edge_weight_covers_every_pixel_an_edges_blur_reaches_and_fades():
     """`edge_weight` > 0: the pixels within (larger |CoC| + 1 px) chessboard distance of a pair
     of neighbours whose CoCs differ by 1 px or more, against a brute-force scan; the weight
@@ -693,10 +743,11 @@ def test_a_gated_hybrid_corrects_only_near_the_given_depths_edges(setup):
         tiny_config(model={"gate": "edges"})  # the paper's networks have no correction to gate
 
 
-def test_a_hybrid_run_trains_resumes_bit_identically_and_renders_a_photo(setup, tmp_path, shared_assets):
+@pytest.mark.parametrize("near_shift", [0, 2])
+def test_a_hybrid_run_trains_resumes_bit_identically_and_renders_a_photo(setup, tmp_path, shared_assets, near_shift):
     _, data, _, _ = setup
     cfg_path = tmp_path / "hybrid.toml"
-    cfg_path.write_text(to_toml(tiny_config(model={"kind": "hybrid"})))
+    cfg_path.write_text(to_toml(tiny_config(model={"kind": "hybrid", "near_shift": near_shift})))
     runs = {}
     for name, stops in (("4", [None]), ("2+2", ["2", None])):
         runs[name] = tmp_path / name

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 
 from dofsynth.color import linear_to_srgb, srgb_to_linear
@@ -39,11 +40,31 @@ def classical_render(image: np.ndarray, disparity: np.ndarray, focus: float, max
     return linear_to_srgb(out) if color == "srgb" else out
 
 
-def classical_input(item: dict, color: str) -> np.ndarray:
+def near_shifted(disparity: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """The disparity (H, W) with its near regions (1 = nearest) grown and shrunk by `radius` px:
+    its grey dilation and erosion by the disc of the pixels within `radius` (outside the frame
+    counts as nothing)."""
+    yy, xx = np.mgrid[-radius : radius + 1, -radius : radius + 1]
+    disc = (yy**2 + xx**2 <= radius**2).astype(np.uint8)
+    d = np.asarray(disparity, np.float32)
+    return cv2.dilate(d, disc), cv2.erode(d, disc)
+
+
+def classical_stack(image: np.ndarray, disparity: np.ndarray, focus: float, max_coc: float, record: dict,
+                    color: str = "srgb", near_shift: int = 0) -> np.ndarray:
+    """The hybrid model's classical input, (H, W, 3) or with `near_shift` > 0 px (H, W, 9): the
+    classical render from `disparity`, then from it with its near regions grown and shrunk by
+    that many px (`near_shifted`), where a depth estimate's edges are often displaced to; the
+    arguments as `classical_render`'s."""
+    maps = [disparity, *near_shifted(disparity, near_shift)] if near_shift > 0 else [disparity]
+    return np.concatenate([classical_render(image, d, focus, max_coc, record, color) for d in maps], axis=2)
+
+
+def classical_input(item: dict, color: str, near_shift: int = 0) -> np.ndarray:
     """The hybrid model's input for a decoded training crop (dofsynth.train.data.decode_crop: its
-    image codes, corrupted disparity, focus, max_coc and look): the classical render from that
+    image codes, corrupted disparity, focus, max_coc and look): `classical_stack` from that
     disparity, in the networks' colour space ([data] color: "srgb" or "linear"; the codes are
     decoded to linear light once, and a linear result is not encoded to sRGB and back)."""
     image = unit_float(item["image"], item["key"])
-    return classical_render(srgb_to_linear(image) if color == "linear" else image, item["disparity"], item["focus"],
-                            item["max_coc"], json.loads(item["look"]), color)
+    return classical_stack(srgb_to_linear(image) if color == "linear" else image, item["disparity"], item["focus"],
+                           item["max_coc"], json.loads(item["look"]), color, near_shift)

@@ -97,6 +97,9 @@ class ModelConfig:
                                                             # construction; false: the paper's network alone)
     gate: str = key("none", choices=("none", "edges"))      # hybrid: "edges" = its correction only within the
                                                             # blur's reach of an edge of the given depth
+    near_shift: int = key(0, lo=0)                          # hybrid: px (at the data's size) by which two more
+                                                            # classical renders grow and shrink the given depth's
+                                                            # near regions, mixed in per pixel; 0 = none
 
 
 @dataclass_kw
@@ -181,6 +184,9 @@ def _check(cfg: Config, source: str) -> None:
     if cfg.model.gate != "none" and cfg.model.kind != "hybrid":
         raise error(source, "model.gate", "'none' unless model.kind = 'hybrid' (it gates the hybrid's correction)",
                     cfg.model.gate)
+    if cfg.model.near_shift and cfg.model.kind != "hybrid":
+        raise error(source, "model.near_shift", "0 unless model.kind = 'hybrid' (the renders it mixes are the hybrid's input)",
+                    cfg.model.near_shift)
 
 
 def from_dict(d: dict, source: str = "<config>") -> Config:

@@ -10,7 +10,8 @@ One item (all float32 tensors, channels first; s = 2**levels, crop side C, low-r
     target_lo  (3, C/s, C/s)  the DoF target, area-downsampled
     target     (3, C, C)      the DoF target (never corrupted)
     disparity  (1, C, C)      the corrupted disparity in [0, 1], high res (for baselines)
-    classical  (3, C, C)      [model] kind = "hybrid" only: the classical render from it
+    classical  (3, C, C)      [model] kind = "hybrid" only: the classical render from it; (9, C, C)
+                              with [model] near_shift (classical.classical_stack)
     focus, max_coc, target_index, key, shard, corruption (JSON text of the sampled parameters)
 
 Colour: with [data] color = "srgb" (the default, as in the paper) images stay sRGB-encoded in
@@ -167,7 +168,8 @@ def finish_item(c: dict, cfg: Config) -> dict:
         image, dof = srgb_to_linear(image), srgb_to_linear(dof)
     corrupted = c["disparity"]
     signed_lo = signed_disparity(area_downsample(corrupted, s), c["focus"], c["max_coc"], cfg.model.coc_ref)
-    hybrid = {"classical": _chw(classical_input(c, cfg.data.color))} if cfg.model.kind == "hybrid" else {}
+    hybrid = {"classical": _chw(classical_input(c, cfg.data.color, cfg.model.near_shift))} \
+        if cfg.model.kind == "hybrid" else {}
     return {**hybrid,
         "image": _chw(image), "image_lo": _chw(area_downsample(image, s)),
         "signed_lo": _chw(signed_lo),

@@ -32,7 +32,7 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 from dofsynth.color import linear_to_srgb, srgb_to_linear
 from dofsynth.optics.coc import coc_radius
 from dofsynth.train.checkpoint import load_model, weights_path
-from dofsynth.train.classical import PHOTO_LOOK, classical_render
+from dofsynth.train.classical import PHOTO_LOOK, classical_stack
 from dofsynth.train.depth import predict_disparity
 from dofsynth.train.models import area_resize, bilinear
 
@@ -206,10 +206,12 @@ def render_with(model, cfg, image: np.ndarray, disp: np.ndarray, focus: float, a
     # blur's low resolution times 2**levels)
     coc_px = cfg.model.coc_ref * max(work) / (low_side * 2 ** cfg.data.levels)
     classical = None
-    if cfg.model.kind == "hybrid":  # its input: the classical render at `work`, in the network's colours
+    if cfg.model.kind == "hybrid":  # its input: the classical render(s) at `work`, in the network's colours
         net = x[0].permute(1, 2, 0).float().cpu().numpy()
-        out = classical_render(np.clip(net, 0.0, 1.0) if cfg.data.color == "srgb" else net,
-                               d[0, 0].float().cpu().numpy(), focus, coc_px * aperture, PHOTO_LOOK, cfg.data.color)
+        shift = round(cfg.model.near_shift * coc_px / cfg.model.coc_ref)  # px at the training size -> at `work`
+        out = classical_stack(np.clip(net, 0.0, 1.0) if cfg.data.color == "srgb" else net,
+                              d[0, 0].float().cpu().numpy(), focus, coc_px * aperture, PHOTO_LOOK, cfg.data.color,
+                              max(shift, 1) if cfg.model.near_shift else 0)
         classical = torch.from_numpy(np.ascontiguousarray(out)).permute(2, 0, 1)[None].to(device)
     with torch.inference_mode():
         _, out = model(x, signed_lo, sizes=sizes, rows=BAND_ROWS, signed_hi=signed, coc_px=coc_px,

@@ -268,12 +268,17 @@ class HybridNet(nn.Module):
     arguments are DeepLensNet's; with [model] identity, H is the image where no blur reaches;
     with [model] gate = "edges", the correction is weighted by `edge_weight` of signed_hi, so H
     is C wherever no depth edge is within the blur's reach: the correction acts only where the
-    single-image render is unreliable, fading out towards the edge of that band."""
+    single-image render is unreliable, fading out towards the edge of that band. With [model]
+    near_shift, C is (B, 9, H, W): the render, then the renders from the depth with its near
+    regions grown and shrunk (dofsynth.train.classical.classical_stack); the U-Net sees all three
+    and the correction adds m_g (C_g - C) + m_s (C_s - C), per-pixel weights of the head, so
+    moving a blurred edge to where the image says it is, is a choice, not a synthesis."""
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
-        self.body = UNet(7, cfg.kp_width, cfg.kp_depth, cfg.norm)
-        self.head = nn.Conv2d(cfg.kp_width, 3, 1)
+        self.alternatives = 2 if cfg.near_shift else 0  # the grown and the shrunk render
+        self.body = UNet(7 + 3 * self.alternatives, cfg.kp_width, cfg.kp_depth, cfg.norm)
+        self.head = nn.Conv2d(cfg.kp_width, 3 + self.alternatives, 1)
         nn.init.zeros_(self.head.weight), nn.init.zeros_(self.head.bias)
         self.identity = cfg.identity
         self.gate = cfg.gate == "edges"
@@ -288,21 +293,26 @@ class HybridNet(nn.Module):
         if self.gate and signed_hi is None:
             raise ValueError('[model] gate = "edges" needs the full-resolution disparity (signed_hi=, coc_px=)')
         sizes = size_chain(tuple(image.shape[-2:]), steps) if sizes is None else sizes
-        _check(image, 3, "image"), _check(classical, 3, "classical", image.shape[-2:])
+        _check(image, 3, "image"), _check(classical, 3 * (1 + self.alternatives), "classical", image.shape[-2:])
         signed = signed_hi if signed_hi is not None else bilinear(signed_lo, tuple(image.shape[-2:]))
         weight = edge_weight(signed_hi, coc_px) if self.gate else None
-        correction = self._correction(torch.cat([image, classical, signed], dim=1), rows,
-                                      None if weight is None else weight > 0)
+        head = self._correction(torch.cat([image, classical, signed], dim=1), rows,
+                                None if weight is None else weight > 0)
+        base = classical[:, :3]
+        correction = head[:, :3]
+        for k in range(self.alternatives):  # the per-pixel mix of each other render
+            correction = correction + head[:, 3 + k : 4 + k] * (classical[:, 3 + 3 * k : 6 + 3 * k] - base)
         if weight is not None:
             correction = correction * weight
-        result = classical + correction
+        result = base + correction
         if self.identity and signed_hi is not None:
             result = torch.where(untouched(signed_hi, coc_px), image, result)
         return area_resize(result, sizes[0]), result
 
     def _correction(self, x: torch.Tensor, rows: int | None, needed: torch.Tensor | None = None) -> torch.Tensor:
-        """The U-Net's correction of its input x (B, 7, H, W), edge-padded to a multiple of the
-        U-Net's stride (so each level is exactly half the one above, as in training's crops).
+        """The U-Net's head, (B, 3 + alternatives, H, W), on its input x (B, 7 + 3 alternatives,
+        H, W), edge-padded to a multiple of the U-Net's stride (so each level is exactly half the
+        one above, as in training's crops).
         With `rows` (inference: an eval-mode U-Net without group normalisation, whose outputs
         depend only on inputs within `unet_reach`), in tiles of about that many rows and
         columns (a multiple of the stride, at least 8x `unet_reach`), each computed with
@@ -319,7 +329,7 @@ class HybridNet(nn.Module):
         step = -(-max(rows or H, 8 * reach) // stride) * stride
         if rows is None or not self.local or self.training or (step >= max(H, W) and needed is None):
             return self.head(self.body(x))[:, :, :h, :w]
-        out = x.new_zeros((x.shape[0], 3, h, w))
+        out = x.new_zeros((x.shape[0], self.head.out_channels, h, w))
         for r0 in range(0, h, step):
             r1 = min(r0 + step, h)
             a, b = max(r0 - reach, 0), min(r1 + reach, H)
