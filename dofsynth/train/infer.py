@@ -208,10 +208,11 @@ def render_with(model, cfg, image: np.ndarray, disp: np.ndarray, focus: float, a
     classical = None
     if cfg.model.kind == "hybrid":  # its input: the classical render(s) at `work`, in the network's colours
         net = x[0].permute(1, 2, 0).float().cpu().numpy()
-        shift = round(cfg.model.near_shift * coc_px / cfg.model.coc_ref)  # px at the training size -> at `work`
+        # [model] near_shift is px at the training size: scaled to `work` as the CoC is
+        shift = max(1, round(cfg.model.near_shift * coc_px / cfg.model.coc_ref)) if cfg.model.near_shift else 0
         out = classical_stack(np.clip(net, 0.0, 1.0) if cfg.data.color == "srgb" else net,
                               d[0, 0].float().cpu().numpy(), focus, coc_px * aperture, PHOTO_LOOK, cfg.data.color,
-                              max(shift, 1) if cfg.model.near_shift else 0)
+                              shift)
         classical = torch.from_numpy(np.ascontiguousarray(out)).permute(2, 0, 1)[None].to(device)
     with torch.inference_mode():
         _, out = model(x, signed_lo, sizes=sizes, rows=BAND_ROWS, signed_hi=signed, coc_px=coc_px,
