@@ -25,14 +25,16 @@ under an hour.
    trained on the clean depth), the hybrid in linear light ([data] color), the
    hybrid trained for 1200 steps instead of 400, and so trained with its correction gated to
    the band around the given depth's edges ([model] gate = "edges"), also for 2400 steps and
-   with its U-Net one level deeper (kp_depth 4, 1200 steps), each trained with --seeds seeds;
+   with its U-Net one level deeper (kp_depth 4, 1200 steps), and given two more classical renders
+   of the depth with its near regions grown and shrunk by 10 px ([model] near_shift = 10, 1200
+   steps; also without the identity rule), each trained with --seeds seeds;
    one table on
    the test split, everyone given the same realistic depth: PSNR and SSIM overall, in the edge
    band, outside it and where no blur reaches (the target is the input), the mean of the seeds
    and their range (--depth: another disparity, e.g. predicted:RUN, a depth run's estimates;
    given one, also the gated hybrid trained with half its items given RUN's estimates of the
    train scenes, [augment] predicted_prob = 0.5).
-   About 2-4 minutes per run of 400 steps, 9-11 of 1200, 22 of 2400 (2 cores), 4 hours in all.
+   About 2-4 minutes per run of 400 steps, 9-11 of 1200, 22 of 2400 (2 cores), 5 hours in all.
 Every size (image, crops, low resolution, steps, batch, parameters) is printed. Runs go to
 OUT/runs/<config hash>; a finished run is reused (delete it to train again).
 """

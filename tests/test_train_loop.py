@@ -686,6 +686,30 @@ def test_a_hybrid_given_shifted_renders_starts_as_the_classical_render_and_can_p
         tiny_config(model={"near_shift": 2})  # the paper's networks have no classical input
 
 
+def test_render_with_scales_the_near_shift_with_the_photo(monkeypatch):
+    """At inference the hybrid's grown and shrunk renders shift the near regions by near_shift
+    px scaled as the CoC is (the photo's long side over the training image's), at least 1 px;
+    its CoC likewise."""
+    import dofsynth.train.infer as infer
+    from dofsynth.train.models import HybridNet
+
+    cfg = tiny_config(model={"kind": "hybrid", "coc_ref": 8.0, "near_shift": 3}, infer={"low_res_side": 16})
+    model = HybridNet(cfg.model).eval()
+    seen = []
+    real = infer.classical_stack
+    monkeypatch.setattr(infer, "classical_stack",
+                        lambda *a: seen.append((a[3], a[6])) or real(*a))  # (max_coc, near_shift)
+    train_side = 16 * 2 ** cfg.data.levels
+    for side in (train_side, 2 * train_side, train_side // 4):
+        image = np.full((side, side, 3), 0.5, np.float32)
+        infer.render_with(model, cfg, image, np.full((side, side), 0.3, np.float32), 0.6)
+    # a photo under low_res_side (16 px) is rendered enlarged to it: half the training side
+    assert cfg.data.levels == 1 and seen == [(8.0, 3), (16.0, 6), (4.0, 2)]
+    infer.render_with(model, cfg, np.full((train_side, train_side, 3), 0.5, np.float32),
+                      np.full((train_side, train_side), 0.3, np.float32), 0.6, aperture=0.5)
+    assert seen[-1] == (4.0, 3)  # a smaller aperture blurs less; the edges' displacement stays
+
+
 def test_the_edge_weight_covers_every_pixel_an_edges_blur_reaches_and_fades():
     """`edge_weight` > 0: the pixels within (larger |CoC| + 1 px) chessboard distance of a pair
     of neighbours whose CoCs differ by 1 px or more, against a brute-force scan; the weight
