@@ -33,11 +33,17 @@ def classical_render(image: np.ndarray, disparity: np.ndarray, focus: float, max
     """The single-image classical render of `image` with the look of `record` (a sample record,
     `json.loads(look_of(record))` or PHOTO_LOOK); image and result in `color`: "srgb"
     (sRGB-encoded) or "linear"."""
+    return _renders(image, [disparity], focus, max_coc, record, color)[0]
+
+
+def _renders(image, maps, focus, max_coc, record, color) -> list[np.ndarray]:
+    """`classical_render` of one image from each disparity of `maps`, the image decoded to
+    linear light once."""
     image = np.asarray(image, np.float32)
-    out = render_photo(srgb_to_linear(image) if color == "srgb" else image, np.asarray(disparity, np.float32),
-                       focus, max_coc, aperture_from_dict(record["aperture"]),
-                       Look.from_dict(record.get("options", {})))
-    return linear_to_srgb(out) if color == "srgb" else out
+    linear = srgb_to_linear(image) if color == "srgb" else image
+    aperture, look = aperture_from_dict(record["aperture"]), Look.from_dict(record.get("options", {}))
+    outs = [render_photo(linear, np.asarray(d, np.float32), focus, max_coc, aperture, look) for d in maps]
+    return [linear_to_srgb(out) for out in outs] if color == "srgb" else outs
 
 
 def near_shifted(disparity: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
@@ -56,8 +62,10 @@ def classical_stack(image: np.ndarray, disparity: np.ndarray, focus: float, max_
     classical render from `disparity`, then from it with its near regions grown and shrunk by
     that many px (`near_shifted`), where a depth estimate's edges are often displaced to; the
     arguments as `classical_render`'s."""
-    maps = [disparity, *near_shifted(disparity, near_shift)] if near_shift > 0 else [disparity]
-    return np.concatenate([classical_render(image, d, focus, max_coc, record, color) for d in maps], axis=2)
+    if near_shift <= 0:
+        return classical_render(image, disparity, focus, max_coc, record, color)
+    maps = [disparity, *near_shifted(disparity, near_shift)]
+    return np.concatenate(_renders(image, maps, focus, max_coc, record, color), axis=2)
 
 
 def classical_input(item: dict, color: str, near_shift: int = 0) -> np.ndarray:
