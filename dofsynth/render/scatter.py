@@ -82,7 +82,6 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
     # the slope of the CoC (px per px), for the Jacobian weight; None where it is 0
     g = np.clip(np.gradient(line.astype(np.float64)), -MAX_SLOPE, MAX_SLOPE).astype(np.float32) if line.size > 1 else None
     g = g if g is not None and np.any(g) else None
-    linear = g is not None and float(g.max() - g.min()) <= 1e-6 * max(float(np.abs(g).max()), 1e-6)
     plans = []  # per level: (radius, s, p0, p1, q0, q1, j0, small, passes per aperture)
     w_accs = [np.zeros(lo_a, np.float32) for _ in apertures]
     for k, ck in enumerate(levels):
@@ -98,8 +97,10 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
             continue
         gk = None if g is None else g[p0:p1]
         # per aperture, its passes (weight along a, kernel as (a, u)): K with the level's weight
-        # and, where the slope varies, the first moment M with the weight times the slope (on a
-        # linear ramp one pass, K + g M)
+        # and, where the slope varies, the first moment M with the weight times the slope; where
+        # the slope is constant over the level's strip (everywhere but at the frame's edges,
+        # beyond which the plane goes on flat), one pass, K + g M
+        level_linear = gk is not None and _constant(gk)
         passes_of = []
         for aperture in apertures:
             kk = kernel(aperture, float(ck))
@@ -107,7 +108,7 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
             if gk is not None:
                 mk = kernel_moments(aperture, float(ck))[u]
                 if float(np.abs(mk).max()) > 1e-6:  # (a disc's identity level has centroid 0: nothing)
-                    passes = [(wk, kk + np.float32(gk[0]) * mk)] if linear else [(wk, kk), (wk * gk, mk)]
+                    passes = [(wk, kk + np.float32(gk.mean()) * mk)] if level_linear else [(wk, kk), (wk * gk, mk)]
             passes_of.append([(wv, kn if a == 0 else kn.T) for wv, kn in passes])
         # where the strip's blur lands in O along a (index j of its full convolution is E
         # position p0 - s + j)
@@ -175,6 +176,15 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
                 for j, ch in enumerate(chans):
                     outs[i][ch] += cv2.transpose(r[j])
     return [w[:, None] if a == 0 else w[None, :] for w in w_accs]
+
+
+SLOPE_TOLERANCE = 1e-5  # px per px: a slope varying less is taken as its mean (float32 CoC lines vary by ~1e-6)
+
+
+def _constant(g: np.ndarray) -> bool:
+    """Whether a slope profile is constant: within SLOPE_TOLERANCE, which changes the Jacobian
+    weight 1 + p . g by at most 5e-6 (|p| <= 1), far below the level interpolation's error."""
+    return float(g.max() - g.min()) <= SLOPE_TOLERANCE
 
 
 def line_spectrum(k: np.ndarray, s: int, n_u: int, n_k: int) -> np.ndarray:
