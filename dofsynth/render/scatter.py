@@ -29,11 +29,11 @@ def scatter_map(read, shape, c_e, smax, apertures, outs, level_step, level_ratio
     C = outs[0].shape[0]
     levels, k0c, fc = level_weights(c_e, level_step, level_ratio)
     w_accs = [np.zeros((oh, ow), np.float32) for _ in apertures]
-    rlo, rhi = k0c.min(axis=1), k0c.max(axis=1) + 1
-    clo, chi = k0c.min(axis=0), k0c.max(axis=0) + 1
+    in_rows, in_cols = _levels_along(k0c, levels.size)
     for k, ck in enumerate(levels):
-        rows = np.flatnonzero((rlo <= k) & (rhi >= k))
-        cols = np.flatnonzero((clo <= k) & (chi >= k))
+        # the rows and columns holding a pixel of level k (k0 = k, or k0 = k - 1 with weight f)
+        rows = np.flatnonzero(in_rows[:, k] | in_rows[:, max(k - 1, 0)])
+        cols = np.flatnonzero(in_cols[:, k] | in_cols[:, max(k - 1, 0)])
         if rows.size == 0 or cols.size == 0:
             continue
         s = support_radius(ck)
@@ -53,6 +53,16 @@ def scatter_map(read, shape, c_e, smax, apertures, outs, level_step, level_ratio
             cv.add_into(copy_tile(wk), w_acc, ty0, tx0)
             cv.add_stack_into(weighted, out, ty0, tx0)
     return w_accs
+
+
+def _levels_along(k0: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, n) and (cols, n) bool: whether each row and column of a lower-level index map k0
+    (values in [0, n)) holds the index k; so a level's pixels lie in the box of its own rows and
+    columns (a level of a receding ground is a band, however far the map's other levels reach)."""
+    h, w = k0.shape
+    rows = np.bincount((k0 + (np.arange(h, dtype=np.int64) * n)[:, None]).ravel(), minlength=h * n)
+    cols = np.bincount((k0 + (np.arange(w, dtype=np.int64) * n)[None, :]).ravel(), minlength=w * n)
+    return rows.reshape(h, n) > 0, cols.reshape(w, n) > 0
 
 
 LINE_GROUP_BYTES = 64 << 20  # `scatter_line` takes as many channels at once as fit in this (plane, spectra)
@@ -183,7 +193,7 @@ SLOPE_TOLERANCE = 1e-5  # px per px: a slope varying less is taken as its mean (
 
 def _constant(g: np.ndarray) -> bool:
     """Whether a slope profile is constant: within SLOPE_TOLERANCE, which changes the Jacobian
-    weight 1 + p . g by at most 5e-6 (|p| <= 1), far below the level interpolation's error."""
+    weight 1 + p . g by at most 1e-5 (|p| <= 1), far below the level interpolation's error."""
     return float(g.max() - g.min()) <= SLOPE_TOLERANCE
 
 
