@@ -317,8 +317,9 @@ class HybridNet(nn.Module):
         depend only on inputs within `unet_reach`), in tiles of about that many rows and
         columns (a multiple of the stride, at least 8x `unet_reach`), each computed with
         `unet_reach` more on every side: the same values up to float rounding, the activations
-        of one band instead of a frame. `needed` (B, 1, H, W) bool: only the tiles holding a
-        needed pixel are computed (a run of them at once), the rest of the correction is 0."""
+        of one band instead of a frame. `needed` (B, 1, H, W) bool: in each band only the runs
+        of columns holding a needed pixel are computed (in steps of 8 strides; runs closer than
+        two reaches merge, as their margins would overlap), the rest of the correction is 0."""
         h, w = x.shape[-2:]
         depth = len(self.body.down)
         stride = 2**depth
@@ -333,22 +334,24 @@ class HybridNet(nn.Module):
         for r0 in range(0, h, step):
             r1 = min(r0 + step, h)
             a, b = max(r0 - reach, 0), min(r1 + reach, H)
-            for c0, c1 in _runs(None if needed is None else needed[:, :, r0:r1].any(dim=2).any(dim=0)[0], w, step):
+            cols = None if needed is None else needed[:, :, r0:r1].any(dim=2).any(dim=0)[0]
+            for c0, c1 in _runs(cols, w, 8 * stride, 2 * reach):
                 ca, cb = max(c0 - reach, 0), min(c1 + reach, W)
                 part = self.head(self.body(x[:, :, a:b, ca:cb]))
                 out[:, :, r0:r1, c0:c1] = part[:, :, r0 - a : r1 - a, c0 - ca : c1 - ca]
         return out
 
 
-def _runs(needed: torch.Tensor | None, w: int, step: int) -> list[tuple[int, int]]:
+def _runs(needed: torch.Tensor | None, w: int, step: int, gap: int = 0) -> list[tuple[int, int]]:
     """The column ranges [c0, c1) of runs of tiles `step` wide (the last one up to w) that hold
-    a needed column (`needed` (w,) bool; None: all of them, one run)."""
+    a needed column (`needed` (w,) bool; None: all of them, one run); runs at most `gap`
+    columns apart are one."""
     if needed is None:
         return [(0, w)]
     tiles = [bool(needed[c : c + step].any()) for c in range(0, w, step)]
     runs = []
     for i, on in enumerate(tiles):
-        if on and runs and runs[-1][1] == i * step:
+        if on and runs and runs[-1][1] + gap >= i * step:
             runs[-1] = (runs[-1][0], min((i + 1) * step, w))
         elif on:
             runs.append((i * step, min((i + 1) * step, w)))
