@@ -39,6 +39,9 @@ def level_grid(cmin: float, cmax: float, level_step: float, level_ratio: float =
     return grid[lo : hi + 1]
 
 
+_CHUNK = 1 << 16  # pixels per block of `level_weights`
+
+
 def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0):
     """CoC levels (pixels, `level_grid`) covering [c_min, c_max], and for each pixel its lower
     level index k0 and the weight f of level k0+1 (1 - f goes to level k0), linear in the
@@ -53,15 +56,21 @@ def level_weights(cmap: np.ndarray, level_step: float, level_ratio: float = 0.0)
     levels = level_grid(cmin, cmax, level_step, level_ratio)
     if levels.size == 1:
         return levels, np.zeros(cmap.shape, np.int32), np.zeros(cmap.shape, np.float32)
-    c = cmap.astype(np.float64)
-    k = np.searchsorted(levels, c, side="right")
-    k -= 1
-    np.clip(k, 0, levels.size - 2, out=k)
-    # f = (c - levels[k]) / (levels[k + 1] - levels[k]), in place, one gather per table
-    c -= levels[:-1].take(k)
-    c /= np.diff(levels).take(k)
-    np.clip(c, 0.0, 1.0, out=c)
-    return levels, k.astype(np.int32), c.astype(np.float32)
+    k0, f = np.empty(cmap.shape, np.int32), np.empty(cmap.shape, np.float32)
+    lower, gaps = levels[:-1], np.diff(levels)
+    flat_map, flat_k0, flat_f = cmap.reshape(-1), k0.reshape(-1), f.reshape(-1)
+    for a in range(0, flat_map.size, _CHUNK):  # in blocks: the float64 temporaries stay in cache
+        c = flat_map[a : a + _CHUNK].astype(np.float64)
+        k = np.searchsorted(levels, c, side="right")
+        k -= 1
+        np.clip(k, 0, levels.size - 2, out=k)
+        # f = (c - levels[k]) / (levels[k + 1] - levels[k]), in place, one gather per table
+        c -= lower.take(k)
+        c /= gaps.take(k)
+        np.clip(c, 0.0, 1.0, out=c)
+        flat_k0[a : a + c.size] = k
+        flat_f[a : a + c.size] = c
+    return levels, k0, f
 
 
 def level_weight(k0: np.ndarray, f: np.ndarray, k: int) -> np.ndarray:
