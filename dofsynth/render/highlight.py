@@ -128,13 +128,14 @@ def _apply(x, threshold, gain, power, out, axis, invert: bool):
         flat = np.flatnonzero(hit)
         if not flat.size:
             continue
-        try:  # the block's pixels as rows (a view: whole rows of an image, interleaved or planar)
-            pix, idx = block.reshape(-1, block.shape[-1], copy=False), flat
-        except ValueError:  # a box inside wider rows: index tuples write through it
-            pix, idx = block, np.nonzero(hit)
         mv = mx.reshape(-1)[flat].astype(np.float64)
         scale = (_root(mv, tables) / mv) if invert else _factor(mv, tables)
-        pix[idx] = (pix[idx] * scale[:, None]).astype(np.float32)
+        try:  # each channel's values as one line (views: whole rows, interleaved or planar)
+            chans, idx = [block[..., c].reshape(-1, copy=False) for c in range(block.shape[-1])], flat
+        except ValueError:  # a box inside wider rows: index tuples write through it
+            chans, idx = [block[..., c] for c in range(block.shape[-1])], np.nonzero(hit)
+        for chan in chans:  # a channel at a time: 1-D gathers, not 3-value rows
+            chan[idx] = (chan[idx] * scale).astype(np.float32)
     return out
 
 
