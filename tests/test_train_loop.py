@@ -287,6 +287,38 @@ def test_untouched_reach_spreads_as_the_max_pool_iteration():
         assert torch.equal(got, free) and 0 < got.float().mean() < 1, coc_px
 
 
+def test_the_edge_weight_spreads_as_the_max_pool_iteration_on_both_cpu_paths(monkeypatch):
+    """The hybrid's edge weight spreads each edge's reach by cv2.dilate on small planes and by
+    two raster passes on wide ones (reach.CHAMFER_WORK): both the iterated 3 x 3 max-pool
+    (minus one per step), to the last bit, on random depth edges of random sizes."""
+    import math
+
+    import torch.nn.functional as F
+
+    from dofsynth.train import reach as reach_mod
+
+    g = torch.Generator().manual_seed(7)
+    cases = [torch.rand(1, 1, 40, 90, generator=g), torch.rand(2, 1, 75, 33, generator=g)]
+    blocky = torch.zeros(1, 1, 120, 160)
+    blocky[..., 30:80, 40:100], blocky[..., 90:, 5:20] = 0.6, -0.35  # a near block, a far corner
+    partial = 0
+    for signed in [torch.where(c > 0.995, c, torch.zeros_like(c)) for c in cases] + [blocky]:
+        for coc_px in (5.0, 37.0):
+            c = signed * coc_px
+            hi, lo = F.max_pool2d(c, 3, 1, 1), -F.max_pool2d(-c, 3, 1, 1)
+            spread = torch.where(hi - lo >= 1.0, torch.maximum(hi.abs(), lo.abs()) + 1.0, torch.zeros_like(c))
+            longest = spread.amax(dim=(-2, -1), keepdim=True)
+            for _ in range(math.ceil(float(spread.max()))):
+                spread = torch.maximum(spread, F.max_pool2d(spread, 3, stride=1, padding=1) - 1.0)
+            want = torch.clamp(spread / torch.clamp(longest / 2, min=1.0), 0.0, 1.0)
+            for work in (0, 10**12):  # every plane by the raster passes, then none
+                monkeypatch.setattr(reach_mod, "CHAMFER_WORK", work)
+                got = reach_mod.edge_weight(signed, coc_px)
+                assert torch.equal(got, want), (tuple(signed.shape), coc_px, work)
+            partial += 0 < float(want.mean()) < 1 and len(torch.unique(want)) > 4
+    assert partial >= 4  # weights between 0 and 1, not a frame of ones or zeros
+
+
 def test_untouched_pixels_are_those_no_blur_reaches():
     """A hand-computed case: one pixel of CoC 2.3 px (signed 0.23 at 10 px per unit) in a
     sharp frame reaches 3 px around it (support radius 3); a pixel of 0.4 px reaches nothing."""

@@ -13,10 +13,16 @@ import torch
 import torch.nn.functional as F
 
 
+CHAMFER_WORK = 40_000  # steps x width above which a plane spreads by two raster passes (measured)
+
+
 def _spread_reach(reach: torch.Tensor, steps: int) -> torch.Tensor:
-    """`steps` times reach = max(reach, its 3 x 3 maximum - 1) ((B, 1, h, w) float32): on the
-    CPU by cv2.dilate in place (20-30x faster than max_pool2d there), else by max_pool2d; the
-    same values (a maximum and a subtraction of 1, exact in float32)."""
+    """`steps` times reach = max(reach, its 3 x 3 maximum - 1) ((B, 1, h, w) float32, >= 0).
+    On the CPU by cv2.dilate in place (20-30x faster than max_pool2d there), or, once the steps
+    reach the largest value (the spread is complete: max over q of reach(q) - chessboard
+    distance) on a wide plane, by two raster passes (`_chamfer`: 4x faster at 2048 px); else by
+    max_pool2d. The same values every way (maxima, and subtractions of whole numbers exact in
+    float32 or float64)."""
     if steps <= 0:
         return reach
     if reach.device.type != "cpu":
@@ -26,12 +32,43 @@ def _spread_reach(reach: torch.Tensor, steps: int) -> torch.Tensor:
     out = reach.detach().to(torch.float32).contiguous().clone()
     box = np.ones((3, 3), np.uint8)
     for plane in out.numpy().reshape(-1, *out.shape[-2:]):
+        if steps * plane.shape[1] > CHAMFER_WORK and steps >= math.ceil(float(plane.max())):
+            plane[...] = _chamfer(plane)
+            continue
         grown = np.empty_like(plane)
         for _ in range(steps):
             cv2.dilate(plane, box, dst=grown)  # outside the frame counts as nothing (its default border)
             grown -= 1.0
             np.maximum(plane, grown, out=plane)
     return out
+
+
+def _chamfer(reach: np.ndarray) -> np.ndarray:
+    """max over q of reach(q) - chessboard distance(p, q), for reach (h, w) >= 0: a forward pass
+    (each pixel from its upper three and left neighbours) and a backward one (lower three and
+    right), exact for the chessboard distance (Rosenfeld and Pfaltz 1966). Along a row the
+    pass is a running maximum of reach + column index; in float64, so every value is exact."""
+    f = reach.astype(np.float64)
+    h, w = f.shape
+    col = np.arange(w, dtype=np.float64)
+    near = np.empty(w)
+
+    def from_row(row, other):  # row = max(row, (3-neighbour maximum of the other row) - 1)
+        np.maximum(other[1:], other[:-1], out=near[1:])
+        near[0] = other[0]
+        np.maximum(near[:-1], other[1:], out=near[:-1])
+        np.subtract(near, 1.0, out=near)
+        np.maximum(row, near, out=row)
+
+    for r in range(h):
+        if r:
+            from_row(f[r], f[r - 1])
+        f[r] = np.maximum.accumulate(f[r] + col) - col
+    for r in range(h - 1, -1, -1):
+        if r < h - 1:
+            from_row(f[r], f[r + 1])
+        f[r] = np.maximum.accumulate((f[r] - col)[::-1])[::-1] + col
+    return f.astype(np.float32)
 
 
 @torch.no_grad()
