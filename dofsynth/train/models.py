@@ -296,7 +296,7 @@ class HybridNet(nn.Module):
         _check(image, 3, "image"), _check(classical, 3 * (1 + self.alternatives), "classical", image.shape[-2:])
         signed = signed_hi if signed_hi is not None else bilinear(signed_lo, tuple(image.shape[-2:]))
         weight = edge_weight(signed_hi, coc_px) if self.gate else None
-        head = self._correction(torch.cat([image, classical, signed], dim=1), rows,
+        head = self._correction([image, classical, signed], rows,
                                 None if weight is None else weight > 0)
         base = classical[:, :3]
         correction = head[:, :3]
@@ -309,10 +309,11 @@ class HybridNet(nn.Module):
             result = torch.where(untouched(signed_hi, coc_px), image, result)
         return area_resize(result, sizes[0]), result
 
-    def _correction(self, x: torch.Tensor, rows: int | None, needed: torch.Tensor | None = None) -> torch.Tensor:
+    def _correction(self, x, rows: int | None, needed: torch.Tensor | None = None) -> torch.Tensor:
         """The U-Net's head, (B, 3 + alternatives, H, W), on its input x (B, 7 + 3 alternatives,
-        H, W), edge-padded to a multiple of the U-Net's stride (so each level is exactly half the
-        one above, as in training's crops).
+        H, W), or the list of its parts along channels (concatenated a tile at a time: no copy
+        of the frame), edge-padded to a multiple of the U-Net's stride (so each level is exactly
+        half the one above, as in training's crops).
         With `rows` (inference: an eval-mode U-Net without group normalisation, whose outputs
         depend only on inputs within `unet_reach`), in tiles of about that many rows and
         columns (a multiple of the stride, at least 8x `unet_reach`), each computed with
@@ -320,24 +321,25 @@ class HybridNet(nn.Module):
         of one band instead of a frame. `needed` (B, 1, H, W) bool: in each band only the runs
         of columns holding a needed pixel are computed (in steps of 8 strides; runs closer than
         two reaches merge, as their margins would overlap), the rest of the correction is 0."""
-        h, w = x.shape[-2:]
+        parts = [x] if torch.is_tensor(x) else list(x)
+        h, w = parts[0].shape[-2:]
         depth = len(self.body.down)
         stride = 2**depth
         if h % stride or w % stride:  # every level exactly half the one above, as in training's crops
-            x = F.pad(x, (0, -w % stride, 0, -h % stride), mode="replicate")
-        H, W = x.shape[-2:]
+            parts = [F.pad(p, (0, -w % stride, 0, -h % stride), mode="replicate") for p in parts]
+        H, W = parts[0].shape[-2:]
         reach = -(-unet_reach(depth) // stride) * stride
         step = -(-max(rows or H, 8 * reach) // stride) * stride
         if rows is None or not self.local or self.training or (step >= max(H, W) and needed is None):
-            return self.head(self.body(x))[:, :, :h, :w]
-        out = x.new_zeros((x.shape[0], self.head.out_channels, h, w))
+            return self.head(self.body(torch.cat(parts, dim=1)))[:, :, :h, :w]
+        out = parts[0].new_zeros((parts[0].shape[0], self.head.out_channels, h, w))
         for r0 in range(0, h, step):
             r1 = min(r0 + step, h)
             a, b = max(r0 - reach, 0), min(r1 + reach, H)
             cols = None if needed is None else needed[:, :, r0:r1].any(dim=2).any(dim=0)[0]
             for c0, c1 in _runs(cols, w, 8 * stride, 2 * reach):
                 ca, cb = max(c0 - reach, 0), min(c1 + reach, W)
-                part = self.head(self.body(x[:, :, a:b, ca:cb]))
+                part = self.head(self.body(torch.cat([p[:, :, a:b, ca:cb] for p in parts], dim=1)))
                 out[:, :, r0:r1, c0:c1] = part[:, :, r0 - a : r1 - a, c0 - ca : c1 - ca]
         return out
 
