@@ -108,8 +108,8 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
         gk = None if g is None else g[p0:p1]
         # per aperture, its passes (weight along a, kernel as (a, u)): K with the level's weight
         # and, where the slope varies, the first moment M with the weight times the slope; where
-        # the slope is constant over the level's strip (everywhere but at the frame's edges,
-        # beyond which the plane goes on flat), one pass, K + g M
+        # the slope is constant over the level's strip (a linear ramp, everywhere but where it
+        # is clipped to [0, 1]), one pass, K + g M
         level_linear = gk is not None and _constant(gk)
         passes_of = []
         for aperture in apertures:
