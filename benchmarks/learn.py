@@ -44,6 +44,7 @@ import argparse
 import csv
 import hashlib
 import io
+import json
 import time
 from pathlib import Path
 
@@ -53,7 +54,7 @@ from dofsynth import progress
 from dofsynth.generate import generate
 from dofsynth.manifest import load_manifest
 from dofsynth.recipe import load_recipe
-from dofsynth.train.config import load, replace, to_toml
+from dofsynth.train.config import Config, load, replace
 from dofsynth.train.evaluate import evaluate_run
 from dofsynth.train.loop import train
 from dofsynth.train import checkpoint
@@ -89,10 +90,18 @@ def make_data(out: Path, recipe: Path = RECIPE, name: str = "data") -> Path:
     return data
 
 
+def run_key(cfg) -> str:
+    """The hash that names a run's folder: of the config's keys that differ from their defaults,
+    so a key added later (at its default: the same training) keeps every earlier run."""
+    default = Config().to_dict()
+    changed = {t: {k: v for k, v in vals.items() if v != default[t][k]} for t, vals in cfg.to_dict().items()}
+    return hashlib.sha256(json.dumps(changed, sort_keys=True, default=list).encode()).hexdigest()[:12]
+
+
 def run(name: str, cfg, data: Path, out: Path) -> Path:
-    """Train `cfg` into OUT/runs/<config hash> (reused when finished: the same config under two
+    """Train `cfg` into OUT/runs/<run_key> (reused when finished: the same config under two
     names trains once); returns the folder."""
-    folder = out / "runs" / hashlib.sha256(to_toml(cfg).encode()).hexdigest()[:12]
+    folder = out / "runs" / run_key(cfg)
     params = f"{sum(p.numel() for p in build_model(cfg).parameters()):,} parameters"
     if (folder / "ckpt.pt").is_file() and checkpoint.load(folder / "ckpt.pt")["step"] >= cfg.train.max_steps:
         print(f"  {name!r}: {cfg.train.max_steps} steps, trained before ({params}; {folder})", flush=True)
