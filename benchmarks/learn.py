@@ -191,6 +191,7 @@ NEAR_SHIFT = 10  # px: [model] near_shift of the hybrid given grown and shrunk r
 # with --depth predicted:RUN, the share of training items given RUN's estimates (the rest: the realistic
 # errors); RUN trained on these train scenes, so its estimates of them are better than of the test's
 ESTIMATE_SHARE = 0.5
+CLEAN_SHARE = 0.25  # [augment] clean_prob of the hybrid trained with a share of clean depth
 METRICS = [("psnr", "PSNR"), ("ssim", "SSIM")]
 REGION_NAMES = [("", "overall"), ("_edge", "edge band"), ("_out", "outside it"), ("_same", "target = input")]
 
@@ -242,7 +243,12 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
              # and without the identity rule: where the given depth's CoC is under 0.5 px the
              # classical render's slight blur (a 0.4 px kernel keeps 69 % of a pixel) stays
              f"hybrid gated, near regions shifted {NEAR_SHIFT} px, identity off, {LONG} steps":
-                 steps(replace(gated, "model", near_shift=NEAR_SHIFT, identity=False), LONG)}
+                 steps(replace(gated, "model", near_shift=NEAR_SHIFT, identity=False), LONG),
+             # and trained with a share of its items given the clean depth ([augment] clean_prob):
+             # always given wrong depth, it learns to distrust every edge, also one that is right
+             f"hybrid gated, near regions shifted {NEAR_SHIFT} px, {CLEAN_SHARE:.0%} of the items clean, {LONG} steps":
+                 steps(replace(replace(gated, "model", near_shift=NEAR_SHIFT), "augment", clean_prob=CLEAN_SHARE),
+                       LONG)}
     if depth.startswith("predicted:"):  # given an estimator's depth: also trained on it, half of the items
         kinds[f"hybrid gated, trained on the estimates (half the items), {LONG} steps"] = steps(replace(
             gated, "augment", predicted_prob=ESTIMATE_SHARE, predicted_run=str(Path(depth[len("predicted:"):]).resolve())),

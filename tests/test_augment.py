@@ -1,6 +1,7 @@
 """Depth corruption (dofsynth.augment): each kind does what it says, is seeded and replayable."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -124,6 +125,25 @@ def test_switching_one_kind_off_leaves_the_others_draws_alone():
         a = sample_corruption(2, cfg, np.random.default_rng(s))
         b = sample_corruption(2, cfg_no_morph, np.random.default_rng(s))
         assert b["morph"] == [None, None] and a["noise"] == b["noise"] and a["shift"] == b["shift"]
+
+
+def test_a_clean_share_leaves_that_share_of_items_uncorrupted_and_the_others_as_they_were():
+    """[augment] clean_prob: about that share of the draws corrupts nothing (the item trains on
+    the clean disparity); every other draw is what it was without the key."""
+    d, layers = scene()
+    cfg = AugmentConfig(morph_prob=1.0, warp_prob=1.0, remap_prob=1.0)
+    shared = dataclasses.replace(cfg, clean_prob=0.3)
+    clean = 0
+    for s in range(200):
+        a = sample_corruption(2, cfg, np.random.default_rng(s))
+        b = sample_corruption(2, shared, np.random.default_rng(s))
+        if b["warp"] is None:
+            clean += 1
+            assert b == sample_corruption(2, AugmentConfig(enabled=False), np.random.default_rng(s))
+            assert np.array_equal(apply_corruption(d, layers, b), d)
+        else:
+            assert a == b
+    assert 40 <= clean <= 80  # 30 % of 200, binomial sd 6.5
 
 
 def test_layers_from_a_record_and_its_cover_image():

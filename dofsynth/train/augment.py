@@ -75,6 +75,9 @@ def sample_corruption(n_planes: int, cfg, rng: np.random.Generator) -> dict:
         return params
     r_morph, r_shift, r_blur, r_noise, r_quant = rng.spawn(5)
     r_swap, r_fill, r_warp, r_remap = rng.spawn(4)  # after the first five: their draws stay as they were
+    (r_clean,) = rng.spawn(1)  # after those: the same again
+    if cfg.clean_prob > 0 and r_clean.random() < cfg.clean_prob:  # this item keeps the clean disparity
+        return params
     params["swap"] = n_planes == 2 and bool(r_swap.random() < cfg.swap_prob)
     for i in range(n_planes):
         if r_fill.random() < cfg.fill_prob:

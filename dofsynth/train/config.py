@@ -72,6 +72,7 @@ class AugmentConfig:
     remap_scale: Range = key((0.7, 1.3), lo=0.0)
     remap_shift: Range = key((-0.15, 0.15))
     remap_gamma: Range = key((0.6, 1.6), lo=0.0, lo_open=True)
+    clean_prob: float = key(0.0, lo=0.0, hi=1.0)                   # items given the clean disparity (none of the above)
     # a depth network's own errors (dofsynth.train.estimates): per sample, instead of the kinds above
     predicted_prob: float = key(0.0, lo=0.0, hi=1.0)                # the estimate of predicted_run
     predicted_run: str = key("")                                    # a depth run folder ([train] task = "depth")
