@@ -60,9 +60,16 @@ def _levels_along(k0: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     (values in [0, n)) holds the index k; so a level's pixels lie in the box of its own rows and
     columns (a level of a receding ground is a band, however far the map's other levels reach)."""
     h, w = k0.shape
-    rows = np.bincount((k0 + (np.arange(h, dtype=np.int64) * n)[:, None]).ravel(), minlength=h * n)
-    cols = np.bincount((k0 + (np.arange(w, dtype=np.int64) * n)[None, :]).ravel(), minlength=w * n)
-    return rows.reshape(h, n) > 0, cols.reshape(w, n) > 0
+    rows, cols = np.zeros((h, n), bool), np.zeros(w * n, np.int64)
+    col_base = np.arange(w, dtype=np.int64) * n
+    step = max(1, (1 << 16) // max(w, 1))  # rows per block: small temporaries
+    for r0 in range(0, h, step):
+        block = k0[r0 : r0 + step] + col_base  # (rows, w): column c's level k at c * n + k
+        cols += np.bincount(block.ravel(), minlength=w * n)
+        block %= n
+        block += (np.arange(r0, r0 + block.shape[0], dtype=np.int64) * n)[:, None]
+        rows.reshape(-1)[block.ravel()] = True
+    return rows, cols.reshape(w, n) > 0
 
 
 LINE_GROUP_BYTES = 64 << 20  # `scatter_line` takes as many channels at once as fit in this (plane, spectra)
