@@ -156,13 +156,16 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
                         strips[m] = x[:, p0:p1] * wv[:, None]
                     cv = Convolver(ck, aperture, p1 - p0, le_u, k=kn)
                     cv.add_stack_into(strips[m], r, p0 - smax - s, -smax - s)
-        spec = None  # the group's spectrum along u, (G, le_a, nu2), once a level needs it
-        accs = [None] * len(apertures)  # per aperture: the FFT levels' sum in the u-spectrum
-        for ck, s, p0, p1, q0, q1, j0, small, passes_of in plans:
-            if small:
-                continue
+        # the FFT levels' rows: E's they read (P0..P1) and O's they write (Q0..Q1), the only rows
+        # transformed along u and back (each row on its own: the same values as the whole plane)
+        big = [plan for plan in plans if not plan[7]]
+        P0, P1 = (min(p[2] for p in big), max(p[3] for p in big)) if big else (0, 0)
+        Q0, Q1 = (min(p[4] for p in big), max(p[5] for p in big)) if big else (0, 0)
+        spec = None  # the group's spectrum along u, (G, P1 - P0, nu2), once a level needs it
+        accs = [None] * len(apertures)  # per aperture: the FFT levels' sum in the u-spectrum, rows Q0..Q1
+        for ck, s, p0, p1, q0, q1, j0, small, passes_of in big:
             if spec is None:
-                spec = sfft.rfft(x, n=n_u, axis=2)
+                spec = sfft.rfft(x[:, P0:P1], n=n_u, axis=2)
             n_k = sfft.next_fast_len(p1 - p0 + 2 * s)
             fwd = {}  # per pass weight: the strip times it, transformed along a (n_k points)
             for i, passes in enumerate(passes_of):
@@ -170,7 +173,7 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
                 for m, (wv, kn) in enumerate(passes):
                     if m not in fwd:
                         buf = np.empty((len(chans), n_k, nu2), np.complex64)
-                        np.multiply(spec[:, p0:p1], wv[:, None], out=buf[:, : p1 - p0])
+                        np.multiply(spec[:, p0 - P0 : p1 - P0], wv[:, None], out=buf[:, : p1 - p0])
                         buf[:, p1 - p0 :] = 0.0
                         fwd[m] = sfft.fft(buf, axis=1, overwrite_x=True)
                     ks = line_spectrum(kn, s, n_u, n_k)
@@ -182,12 +185,12 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
                         prod = fwd[m] * ks
                 back = sfft.ifft(prod, axis=1, overwrite_x=True)
                 if accs[i] is None:
-                    accs[i] = np.zeros((len(chans), lo_a, nu2), np.complex64)
-                accs[i][:, q0:q1] += back[:, j0 : j0 + q1 - q0]
+                    accs[i] = np.zeros((len(chans), Q1 - Q0, nu2), np.complex64)
+                accs[i][:, q0 - Q0 : q1 - Q0] += back[:, j0 : j0 + q1 - q0]
         del x, spec
         for i, (acc, r) in enumerate(zip(accs, res)):
             for j in range(len(chans) if acc is not None else 0):  # one channel at a time: memory
-                r[j] += sfft.irfft(acc[j], n=n_u, axis=1)[:, smax : smax + lo_u]
+                r[j, Q0:Q1] += sfft.irfft(acc[j], n=n_u, axis=1)[:, smax : smax + lo_u]
             accs[i] = None
             if a == 1:
                 for j, ch in enumerate(chans):
