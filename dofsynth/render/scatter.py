@@ -85,7 +85,8 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
     of O) and each level is convolved along its axis a in that domain: the strip of the level's
     pixels times its weight, an FFT of the strip plus the kernel's width, the product with the
     kernel's 2-D spectrum, the inverse. The levels' results add up in the u-spectrum and go back
-    once. Small kernels (`fft.is_small`) are convolved directly instead, in space. The weight's
+    once. Small kernels (`fft.is_small`) are convolved directly instead, in space (so only the
+    rows the FFT levels read go through the transform along u, and back). The weight's
     blur is a 1-D convolution with the kernel's projection on a. The work is laid out
     (C, a, u), u contiguous (the long transforms): E transposed for a horizontal ramp; channels
     go as many at a time as fit in LINE_GROUP_BYTES (E and two spectra each)."""
