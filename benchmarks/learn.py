@@ -34,7 +34,7 @@ under an hour.
    and their range (--depth: another disparity, e.g. predicted:RUN, a depth run's estimates;
    given one, also the gated hybrid trained with half its items given RUN's estimates of the
    train scenes, [augment] predicted_prob = 0.5).
-   About 2-4 minutes per run of 400 steps, 9-11 of 1200, 22 of 2400 (2 cores), 5 hours in all.
+   About 2-4 minutes per run of 400 steps, 9-11 of 1200, 22 of 2400 (2 cores), 5.5 hours in all.
 Every size (image, crops, low resolution, steps, batch, parameters) is printed. Runs go to
 OUT/runs/<config hash>; a finished run is reused (delete it to train again).
 """
