@@ -188,13 +188,13 @@ def test_the_hybrids_correction_in_bands_of_rows_is_the_whole_frames(depth):
     torch.nn.init.normal_(model.head.weight, std=0.5)
     x = torch.rand(1, 7, 213, 40)
     with torch.no_grad():
-        whole = model._correction(x, None)
+        whole = model._correction([x], None)
         for rows in (8, 50):
-            torch.testing.assert_close(model._correction(x, rows), whole, atol=1e-6, rtol=0)
+            torch.testing.assert_close(model._correction([x], rows), whole, atol=1e-6, rtol=0)
         reach = models.unet_reach
         models.unet_reach = lambda d: 1
         try:
-            assert (model._correction(x, 8) - whole).abs().max() > 2e-5
+            assert (model._correction([x], 8) - whole).abs().max() > 2e-5
         finally:
             models.unet_reach = reach
     assert whole.abs().max() > 0.05

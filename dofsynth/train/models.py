@@ -309,11 +309,12 @@ class HybridNet(nn.Module):
             result = torch.where(untouched(signed_hi, coc_px), image, result)
         return area_resize(result, sizes[0]), result
 
-    def _correction(self, x, rows: int | None, needed: torch.Tensor | None = None) -> torch.Tensor:
-        """The U-Net's head, (B, 3 + alternatives, H, W), on its input x (B, 7 + 3 alternatives,
-        H, W), or the list of its parts along channels (concatenated a tile at a time: no copy
-        of the frame), edge-padded to a multiple of the U-Net's stride (so each level is exactly
-        half the one above, as in training's crops).
+    def _correction(self, parts: list[torch.Tensor], rows: int | None,
+                    needed: torch.Tensor | None = None) -> torch.Tensor:
+        """The U-Net's head, (B, 3 + alternatives, H, W), on its input (B, 7 + 3 alternatives,
+        H, W) given as its parts along channels (concatenated a tile at a time: no copy of the
+        frame), edge-padded to a multiple of the U-Net's stride (so each level is exactly half
+        the one above, as in training's crops).
         With `rows` (inference: an eval-mode U-Net without group normalisation, whose outputs
         depend only on inputs within `unet_reach`), in tiles of about that many rows and
         columns (a multiple of the stride, at least 8x `unet_reach`), each computed with
@@ -321,7 +322,6 @@ class HybridNet(nn.Module):
         of one band instead of a frame. `needed` (B, 1, H, W) bool: in each band only the runs
         of columns holding a needed pixel are computed (in steps of 8 strides; runs closer than
         two reaches merge, as their margins would overlap), the rest of the correction is 0."""
-        parts = [x] if torch.is_tensor(x) else list(x)
         h, w = parts[0].shape[-2:]
         depth = len(self.body.down)
         stride = 2**depth
