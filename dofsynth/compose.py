@@ -64,7 +64,8 @@ class SceneLayers:
             keep = 1.0 - a
             for ch in range(3):  # one channel at a time: small temporaries
                 region = out[rows.start - r0:rows.stop - r0, box[1], ch]
-                region[...] = p.rgb[rows, box[1], ch] * a + region * keep
+                region *= keep  # in place: the same values as rgb * a + region * keep
+                region += p.rgb[rows, box[1], ch] * a
         return out
 
     @property
@@ -73,20 +74,24 @@ class SceneLayers:
         return np.stack([self.planes[2].alpha, self.planes[1].alpha], axis=2).astype(np.float32)
 
 
-def background_image(rgb: np.ndarray, crop, flip: bool, h: int, w: int) -> np.ndarray:
+def background_image(rgb: np.ndarray, crop, flip: bool, h: int, w: int, out: np.ndarray | None = None) -> np.ndarray:
+    """The background photo's (x, y, w, h) `crop` (flipped first with `flip`) resampled to
+    (h, w, 3), clipped at 0; written into `out` (a view of a larger canvas) when given."""
     x, y, cw, ch = (int(v) for v in crop)
     part = rgb[y:y + ch, x:x + cw]
     if flip:
         part = part[:, ::-1]
-    out = resize(part, w, h)  # always a new array
+    out = resize(part, w, h, out=out)
     return np.maximum(out, 0.0, out=out)
 
 
-def beyond_frame(rgb: np.ndarray, crop, flip: bool, h: int, w: int, m: int) -> np.ndarray:
+def beyond_frame(rgb: np.ndarray, crop, flip: bool, h: int, w: int, m: int, out: np.ndarray | None = None) -> np.ndarray:
     """The background photo around its crop on a canvas of (h + 2m, w + 2m): the photo's own
     pixels `m` output px past each frame edge, at the crop's scale, where it has them, its edge
-    replicated where it does not. The frame part is `background_image`'s (the caller pastes it
-    in: this one's resampling grid may be up to half a px off there)."""
+    replicated where it does not, clipped at 0. With `out` (that canvas), only its part outside
+    the frame [m:m + h, m:m + w] is written: the frame is `background_image`'s, which the caller
+    puts there (this one's resampling grid may be up to half a px off there); without, a new
+    canvas, frame included."""
     x, y, cw, ch = (int(v) for v in crop)
     ph, pw = rgb.shape[:2]
     sx, sy = cw / w, ch / h
@@ -99,16 +104,18 @@ def beyond_frame(rgb: np.ndarray, crop, flip: bool, h: int, w: int, m: int) -> n
     part = resize(window, part_w, part_h)
     oy, ox = m + round((y0 - y) / sy), m + round((x0 - x) / sx)  # where the window lands on the canvas
     H, W = h + 2 * m, w + 2 * m
-    ty0, tx0 = max(oy, 0), max(ox, 0)
-    ty1, tx1 = min(oy + part.shape[0], H), min(ox + part.shape[1], W)
-    canvas = np.empty((H, W, 3), np.float32)
-    canvas[ty0:ty1, tx0:tx1] = part[ty0 - oy:ty1 - oy, tx0 - ox:tx1 - ox]
-    # the photo's edge repeated where it ends: rows first, then columns (corners from both)
-    canvas[:ty0, tx0:tx1] = canvas[ty0, tx0:tx1]
-    canvas[ty1:, tx0:tx1] = canvas[ty1 - 1, tx0:tx1]
-    canvas[:, :tx0] = canvas[:, tx0:tx0 + 1]
-    canvas[:, tx1:] = canvas[:, tx1 - 1:tx1]
-    return np.maximum(canvas, 0.0, out=canvas)
+    # canvas pixel (i, j) is part's (rows[i], cols[j]): the window where it lands, its edge beyond
+    rows = np.clip(np.arange(H), max(oy, 0), min(oy + part.shape[0], H) - 1) - oy
+    cols = np.clip(np.arange(W), max(ox, 0), min(ox + part.shape[1], W) - 1) - ox
+    if out is None:
+        out = part[np.ix_(rows, cols)]
+        return np.maximum(out, 0.0, out=out)
+    for ys, xs in ((slice(0, m), slice(0, W)), (slice(m + h, H), slice(0, W)),  # above, below, left, right
+                   (slice(m, m + h), slice(0, m)), (slice(m, m + h), slice(m + w, W))):
+        band = out[ys, xs]
+        band[...] = part[np.ix_(rows[ys], cols[xs])]
+        np.maximum(band, 0.0, out=band)
+    return out
 
 
 def extend_cut_sides(rgb: np.ndarray, alpha: np.ndarray, x0: int, y0: int, size: tuple[int, int], sides) -> None:
@@ -177,7 +184,7 @@ def place_premultiplied(premul: np.ndarray, size: tuple[int, int], params: Objec
         return out_rgb, out_a
     part = small[y0 - params.y:y1 - params.y, x0 - params.x:x1 - params.x]
     np.maximum(small, 0.0, out=small)  # `small` is our own array; contiguous is fastest
-    pa = np.minimum(part[..., 3], 1.0)
+    pa = np.minimum(part[..., 3], 1.0, out=out_a[y0:y1, x0:x1])
     col = part[..., :3]
     # straight colour = premultiplied / alpha where alpha > 1e-6, else 0
     inv = np.zeros_like(pa)
@@ -185,7 +192,6 @@ def place_premultiplied(premul: np.ndarray, size: tuple[int, int], params: Objec
     box = out_rgb[y0:y1, x0:x1]
     for ch in range(3):  # a channel at a time: numpy's loop over 3-value pixels is slow (2.5x)
         np.multiply(col[..., ch], inv, out=box[..., ch])
-    out_a[y0:y1, x0:x1] = pa
     return out_rgb, out_a
 
 
@@ -215,7 +221,14 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> SceneLayers:
     bgp = scene.background
     m = int(bgp.margin)
     photo = library.load_background(_asset(library, scene, "background"))
-    bg_rgb = background_image(photo, bgp.crop, bgp.flip, h, w)
+    canvas = None
+    if m:  # the canvas the blur takes: everything `m` px further; the frame's planes are views of it
+        H, W = h + 2 * m, w + 2 * m
+        big = np.empty((H, W, 3), np.float32)
+        bg_rgb = background_image(photo, bgp.crop, bgp.flip, h, w, out=big[m:m + h, m:m + w])
+        beyond_frame(photo, bgp.crop, bgp.flip, h, w, m, out=big)
+    else:
+        bg_rgb = background_image(photo, bgp.crop, bgp.flip, h, w)
     if bgp.mode == "flat":
         bg_plane_disp = float(np.float32(bgp.b0))
     elif bgp.direction == "horizontal":
@@ -224,12 +237,7 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> SceneLayers:
         bg_plane_disp = np.broadcast_to(background_disparity(bgp.mode, bgp.b0, bgp.b1, bgp.direction, h, 1), (h, w))
     disparity = background_disparity(bgp.mode, bgp.b0, bgp.b1, bgp.direction, h, w)
     ones = np.broadcast_to(np.float32(1.0), (h, w))
-    canvas = None
-    if m:  # the canvas the blur takes: everything `m` px further; the frame's planes are views of it
-        H, W = h + 2 * m, w + 2 * m
-        big = beyond_frame(photo, bgp.crop, bgp.flip, h, w, m)
-        big[m:m + h, m:m + w] = bg_rgb
-        bg_rgb = big[m:m + h, m:m + w]
+    if m:
         canvas = [Plane(rgb=big, alpha=np.broadcast_to(np.float32(1.0), (H, W)),
                         disparity=bg_plane_disp if bgp.mode == "flat" else ramp_beyond(bgp, h, w, m))]
     planes = [Plane(rgb=bg_rgb, alpha=ones, disparity=bg_plane_disp)]

@@ -6,18 +6,26 @@ import cv2
 import numpy as np
 
 
-def resize(img: np.ndarray, w: int, h: int, nearest: bool = False) -> np.ndarray:
-    """`img` (H, W[, C]) resampled to (h, w[, C]), a new array of its dtype: INTER_NEAREST with
-    `nearest`, INTER_AREA when shrinking (neither side grows), INTER_LINEAR otherwise."""
+def resize(img: np.ndarray, w: int, h: int, nearest: bool = False, out: np.ndarray | None = None) -> np.ndarray:
+    """`img` (H, W[, C]) resampled to (h, w[, C]), a new array of its dtype (or written into
+    `out`, which may be a view of a larger array): INTER_NEAREST with `nearest`, INTER_AREA when
+    shrinking (neither side grows), INTER_LINEAR otherwise."""
     sh, sw = img.shape[:2]
     if (sw, sh) == (w, h):
-        return np.array(img, copy=True)
+        if out is None:
+            return np.array(img, copy=True)
+        out[...] = img
+        return out
     if nearest:
         interp = cv2.INTER_NEAREST
     else:
         interp = cv2.INTER_AREA if (w <= sw and h <= sh) else cv2.INTER_LINEAR
-    out = cv2.resize(np.ascontiguousarray(img), (int(w), int(h)), interpolation=interp)
-    return out.reshape(int(h), int(w), *img.shape[2:])
+    res = cv2.resize(np.ascontiguousarray(img), (int(w), int(h)), dst=out, interpolation=interp)
+    if out is None:
+        return res.reshape(int(h), int(w), *img.shape[2:])
+    if res is not out:  # (OpenCV made its own array: the view did not suit it)
+        out[...] = res.reshape(out.shape)
+    return out
 
 
 def premultiply(rgb: np.ndarray, alpha: np.ndarray, box) -> np.ndarray:

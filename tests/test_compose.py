@@ -337,3 +337,23 @@ def test_the_canvas_continues_the_ramp_and_cut_objects_and_repeats_only_where_th
     assert np.array_equal(canvas[:, :m - left], np.broadcast_to(canvas[:, m - left:m - left + 1], (26, 3, 3)))
     flipped = beyond_frame(photo, crop, True, 10, 10, m)
     assert np.array_equal(flipped, canvas[:, ::-1])   # scale 1: flipping the window flips the canvas
+    # into the caller's canvas: everything but the frame, the same values
+    given = np.full((26, 26, 3), -1.0, np.float32)
+    assert beyond_frame(photo, crop, False, 10, 10, m, out=given) is given
+    outside = np.ones((26, 26), bool)
+    outside[m:m + 10, m:m + 10] = False
+    assert (given[~outside] == -1.0).all() and np.array_equal(given[outside], canvas[outside])
+
+
+def test_the_background_resampled_into_a_canvas_view_is_the_same_as_on_its_own():
+    from dofsynth.compose import background_image
+
+    photo = np.random.default_rng(1).random((90, 120, 3)).astype(np.float32) - 0.6  # some below 0
+    for crop, flip, (h, w) in (((10, 5, 80, 60), False, (40, 30)), ((0, 0, 50, 50), True, (70, 70)),
+                               ((3, 4, 30, 20), False, (20, 30))):  # shrink, grow, same size
+        alone = background_image(photo, crop, flip, h, w)
+        canvas = np.zeros((h + 8, w + 8, 3), np.float32)
+        view = canvas[4:4 + h, 4:4 + w]
+        assert background_image(photo, crop, flip, h, w, out=view) is view
+        assert np.array_equal(view, alone) and alone.min() == 0.0
+        assert not canvas[:4].any() and not canvas[:, :4].any()

@@ -44,8 +44,9 @@ def _decimal_pow(base: float, exponent: float) -> float:
 
 @lru_cache(maxsize=64)
 def _tables(threshold: float, gain: float, power: float):
-    """T, the segment width and, per knot k: m_k, g_k, the slope of g and h_k = m_k * g_k; and
-    `_segment`'s index of h: the scale of its bins and the knot at each bin's start."""
+    """T, the segment width and, per knot k: m_k, g_k, the slope of g and h_k = m_k * g_k;
+    `_segment`'s index of h: the scale of its bins and the knot at each bin's start; and per
+    segment `_root`'s 4a, b and b^2."""
     if not 0.0 <= threshold < 1.0:
         raise ValueError(f"highlight threshold must be in [0, 1), got {threshold}")
     if gain < 0 or power <= 0:
@@ -62,21 +63,25 @@ def _tables(threshold: float, gain: float, power: float):
     starts = t + np.arange(_INDEX_BINS + 1) / scale
     assert np.diff(h).min() > 1.0 / scale
     start_knot = np.clip(np.searchsorted(h, starts, side="right") - 1, 0, KNOTS - 1)
-    return t, width, m, g, np.diff(g), h, scale, start_knot
+    dg = np.diff(g)
+    # per segment, the quadratic's coefficients as `_root` uses them: h(m_k + width f) = h_k + b f + a f^2
+    a, b = width * dg, m[:-1] * dg + width * g[:-1]
+    return t, width, m, g, dg, h, scale, start_knot, 4.0 * a, b, b * b
 
 
 _INDEX_BINS = 1 << 14
 
 
 def _segment(y: np.ndarray, tables) -> np.ndarray:
-    """The segment k of h holding each y in (T, h_KNOTS): searchsorted(h, y, "right") - 1 clipped
-    to [0, KNOTS - 1], found from the knot at the start of y's bin, moved by at most one knot
-    each way (bins hold one knot at most; the second test covers the bin index's rounding)."""
-    t, _, _, _, _, h, scale, start_knot = tables
-    b = np.clip(((y - t) * scale).astype(np.intp), 0, _INDEX_BINS)
-    k = start_knot[b]
-    k -= (y < h[k]) & (k > 0)
-    k += (y >= h[k + 1]) & (k < KNOTS - 1)
+    """The segment k of h holding each y in (T, h_KNOTS): searchsorted(h, y, "right") - 1, found
+    from the knot at the start of y's bin, moved by at most one knot each way (bins hold one
+    knot at most; the second test covers the bin index's rounding). Neither move leaves
+    [0, KNOTS - 1]: h_0 = T < y and y < h_KNOTS."""
+    t, _, _, _, _, h, scale, start_knot = tables[:8]
+    b = ((y - t) * scale).astype(np.intp)  # >= 0: y > T
+    k = start_knot[np.minimum(b, _INDEX_BINS, out=b)]
+    k -= y < h[k]
+    k += y >= h[k + 1]
     return k
 
 
@@ -90,24 +95,47 @@ def _channel_max(x: np.ndarray, axis: int) -> np.ndarray:
 
 
 def _factor(m: np.ndarray, tables) -> np.ndarray:
-    """g(m) (float64) for linear maxima above T."""
-    t, width, _, g, dg = tables[:5]
-    s = np.clip((m - t) / (1.0 - t), 0.0, 1.0) * KNOTS
-    k = np.minimum(np.floor(s), KNOTS - 1).astype(np.intp)
-    return g[k] + dg[k] * (s - k)
+    """g(m) (float64) for linear maxima above T: g_k + (g_k+1 - g_k) (s - k), s = (m - T) /
+    (1 - T) * KNOTS clipped to [0, KNOTS], k = min(floor(s), KNOTS - 1)."""
+    t, _, _, g, dg = tables[:5]
+    s = m - t
+    s /= 1.0 - t
+    np.clip(s, 0.0, 1.0, out=s)
+    s *= KNOTS
+    k = np.minimum(np.floor(s), KNOTS - 1)
+    s -= k
+    k = k.astype(np.intp)
+    s *= dg[k]
+    s += g[k]
+    return s
 
 
 def _root(mb: np.ndarray, tables) -> np.ndarray:
-    """m with m * g(m) = mb, for boosted maxima mb above T (float64)."""
-    t, width, m, g, dg, h = tables[:6]
-    out = np.where(mb <= t, mb, mb / g[-1])  # unchanged below T; beyond white g is 1 + gain
+    """m with m * g(m) = mb, for boosted maxima mb above T (float64): on segment k, with
+    h(m_k + width f) = h_k + b f + a f^2 and r = mb - h_k, f = 2 r / (b + sqrt(b^2 + 4 a r))
+    (the root without cancellation). Below T mb is unchanged; beyond white g is 1 + gain."""
+    t, width, m, g, _, h = tables[:6]
+    a4, b, b2 = tables[8:]
     inside = (mb > t) & (mb < h[-1])
-    y = mb[inside]
+    every = bool(inside.all())  # the usual case: no masks
+    y = mb if every else mb[inside]
     k = _segment(y, tables)
-    a, b = width * dg[k], m[k] * dg[k] + width * g[k]  # h(m_k + width f) = h_k + b f + a f^2
-    r = np.maximum(y - h[k], 0.0)
-    f = 2.0 * r / (b + np.sqrt(b * b + 4.0 * a * r))
-    out[inside] = m[k] + width * np.minimum(f, 1.0)
+    r = y - h[k]
+    np.maximum(r, 0.0, out=r)
+    den = a4[k]
+    den *= r
+    den += b2[k]
+    np.sqrt(den, out=den)
+    den += b[k]
+    f = 2.0 * r
+    f /= den
+    np.minimum(f, 1.0, out=f)
+    f *= width
+    f += m[k]
+    if every:
+        return f
+    out = np.where(mb <= t, mb, mb / g[-1])
+    out[inside] = f
     return out
 
 
@@ -135,7 +163,8 @@ def _apply(x, threshold, gain, power, out, axis, invert: bool):
         except ValueError:  # a box inside wider rows: index tuples write through it
             chans, idx = [block[..., c] for c in range(block.shape[-1])], np.nonzero(hit)
         for chan in chans:  # a channel at a time: 1-D gathers, not 3-value rows
-            chan[idx] = (chan[idx] * scale).astype(np.float32)
+            v = chan[idx]
+            chan[idx] = np.multiply(v, scale, out=v, casting="unsafe")  # float64 product, rounded once
     return out
 
 
