@@ -207,12 +207,18 @@ def render_with(model, cfg, image: np.ndarray, disp: np.ndarray, focus: float, a
     coc_px = cfg.model.coc_ref * max(work) / (low_side * 2 ** cfg.data.levels)
     classical = None
     if cfg.model.kind == "hybrid":  # its input: the classical render(s) at `work`, in the network's colours
-        net = x[0].permute(1, 2, 0).float().cpu().numpy()
+        # rendered in linear light from what the network sees: at the photo's size the linear
+        # photo itself (what its sRGB input decodes back to), not encoded and decoded again
+        srgb = cfg.data.color == "srgb"
+        if work == (h, w):
+            lin = np.clip(image, 0.0, 1.0) if srgb else net_in
+        else:
+            lin = x[0].permute(1, 2, 0).float().cpu().numpy()
+            lin = srgb_to_linear(np.clip(lin, 0.0, 1.0)) if srgb else lin
         # [model] near_shift is px at the training size: scaled to `work` as the CoC is
         shift = max(1, round(cfg.model.near_shift * coc_px / cfg.model.coc_ref)) if cfg.model.near_shift else 0
-        out = classical_stack(np.clip(net, 0.0, 1.0) if cfg.data.color == "srgb" else net,
-                              d[0, 0].float().cpu().numpy(), focus, coc_px * aperture, PHOTO_LOOK, cfg.data.color,
-                              shift)
+        out = classical_stack(lin, d[0, 0].float().cpu().numpy(), focus, coc_px * aperture, PHOTO_LOOK, "linear", shift)
+        out = linear_to_srgb(out) if srgb else out
         classical = torch.from_numpy(np.ascontiguousarray(out)).permute(2, 0, 1)[None].to(device)
     with torch.inference_mode():
         _, out = model(x, signed_lo, sizes=sizes, rows=BAND_ROWS, signed_hi=signed, coc_px=coc_px,
