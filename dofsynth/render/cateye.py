@@ -144,6 +144,20 @@ def _span(h: np.ndarray) -> tuple[int, int]:
     return (int(nz[0]), int(nz[-1]) + 1) if nz.size else (0, 0)
 
 
+def _interpolated(hy: np.ndarray, grid: np.ndarray, hx: np.ndarray) -> np.ndarray:
+    """hy.T @ grid @ hx, float64 (h, w): node values `grid` (Gy, Gx) spread by the hats hy (Gy, h)
+    and hx (Gx, w), each node row only over the rows its hat covers, summed in node order by
+    numpy (not a BLAS product: one summation order on every machine, and no BLAS threads)."""
+    along_x = np.zeros((grid.shape[0], hx.shape[1]))
+    for j in range(grid.shape[1]):
+        along_x += grid[:, j : j + 1] * hx[j]
+    out = np.zeros((hy.shape[1], hx.shape[1]))
+    for i in range(grid.shape[0]):
+        r0, r1 = _span(hy[i])
+        out[r0:r1] += hy[i, r0:r1, None] * along_x[i]
+    return out
+
+
 def groups(eye: EyePlan, k: int, cell: Aperture, hy: np.ndarray, hx: np.ndarray):
     """Cell k's parts for sources at the hats hy (Gy, h), hx (Gx, w): (aperture, (r0, r1, c0, c1),
     weights (r1 - r0, c1 - c0)) for the nodes where the cell is whole (one group, the cell
@@ -151,7 +165,7 @@ def groups(eye: EyePlan, k: int, cell: Aperture, hy: np.ndarray, hx: np.ndarray)
     share, whole = eye.shares[k], eye.whole[k]
     kept = np.where(whole, share, 0.0)
     if kept.any():
-        weights = (hy.T @ kept @ hx).astype(np.float32)
+        weights = _interpolated(hy, kept, hx).astype(np.float32)
         rows, cols = np.flatnonzero(weights.any(axis=1)), np.flatnonzero(weights.any(axis=0))
         if rows.size:
             r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
