@@ -15,7 +15,7 @@ warm-up sample (reported apart as `first`), then its share of the samples; the r
 interleave trees and cases, so a slow spell of a shared machine hits them all.
 
 Each process is set up as a generation worker is (`setup_process`: one OpenCV thread, the
-workers' malloc settings). Per sample, in that process's own CPU time (`time.process_time`):
+workers' malloc settings; BLAS and OpenMP threads as this machine's environment sets them). Per sample, in that process's own CPU time (`time.process_time`):
 - `sample`: draw the scene, render, encode the members and write them as a one-sample shard
   (`render_one` and `write_shard`, what a worker does per sample);
 - `floor`: what no renderer can avoid: decode the sample's asset files (built-in assets: their
@@ -146,7 +146,10 @@ def _run_child(tree: Path, case: str, size: int, total: int, indices: list[int],
     code = ("import sys, json; sys.path.insert(0, sys.argv[1]); sys.path.insert(1, sys.argv[2]); "
             "import per_sample as p; print(json.dumps(p.child(sys.argv[3], int(sys.argv[4]), int(sys.argv[5]), "
             "json.loads(sys.argv[6]), int(sys.argv[7]), sys.argv[8])))")
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    # the environment a generation worker has: BLAS and OpenMP threads as the machine sets them
+    # (this set OMP_NUM_THREADS=1 once, which hid what OpenBLAS threads spinning after each
+    # product cost a worker: 0.08 CPU s a built-in sample before d8dbc2a)
+    env = dict(os.environ)
     res = subprocess.run([sys.executable, "-c", code, str(tree), str(ROOT / "benchmarks"), case, str(size), str(total),
                           json.dumps(indices), str(warm), method], capture_output=True, text=True, env=env, cwd=tree)
     if res.returncode:
