@@ -218,6 +218,7 @@ def render_with(model, cfg, image: np.ndarray, disp: np.ndarray, focus: float, a
         # [model] near_shift is px at the training size: scaled to `work` as the CoC is
         shift = max(1, round(cfg.model.near_shift * coc_px / cfg.model.coc_ref)) if cfg.model.near_shift else 0
         out = classical_stack(lin, d[0, 0].float().cpu().numpy(), focus, coc_px * aperture, PHOTO_LOOK, "linear", shift)
+        del lin  # (not held through the networks: peak memory)
         out = linear_to_srgb(out) if srgb else out
         classical = torch.from_numpy(np.ascontiguousarray(out)).permute(2, 0, 1)[None].to(device)
     with torch.inference_mode():
