@@ -15,7 +15,8 @@ warm-up sample (reported apart as `first`), then its share of the samples; the r
 interleave trees and cases, so a slow spell of a shared machine hits them all.
 
 Each process is set up as a generation worker is (`setup_process`: one OpenCV thread, the
-workers' malloc settings; BLAS and OpenMP threads as this machine's environment sets them). Per sample, in that process's own CPU time (`time.process_time`):
+workers' malloc settings; BLAS and OpenMP threads as this machine's environment sets them).
+Per sample, in that process's own CPU time (`time.process_time`):
 - `sample`: draw the scene, render, encode the members and write them as a one-sample shard
   (`render_one` and `write_shard`, what a worker does per sample);
 - `floor`: what no renderer can avoid: decode the sample's asset files (built-in assets: their
