@@ -366,7 +366,7 @@ def test_a_recipe_can_choose_the_subaperture_method_and_the_record_says_so(tmp_p
     library = build_library(recipe)
     scene = sample_scene(recipe, library, "train", 0)
     d = decode_sample(render_sample(scene, library))
-    assert d["record"]["renderer"] == "subaperture-v11"
+    assert d["record"]["renderer"] == "subaperture-v12"
     assert {k: d["record"]["options"][k] for k in ("method", "cells", "cat_eye")} == {"method": "subaperture", "cells": 2, "cat_eye": 0.3}
     layers = scene_layers(scene, library)
     hl = d["record"]["options"]["highlight"]

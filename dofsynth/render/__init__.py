@@ -94,12 +94,12 @@ class Method:
 
 
 METHODS: dict[str, Method] = {
-    "layered": Method(render_layered, "layered-v8", ("level_step", "level_ratio", "margin"),
+    "layered": Method(render_layered, "layered-v9", ("level_step", "level_ratio", "margin"),
                       summary="each plane blurred on its own and composited back to front (fast)"),
-    "subaperture": Method(render_subaperture, "subaperture-v11", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
+    "subaperture": Method(render_subaperture, "subaperture-v12", ("level_step", "level_ratio", "cells", "cat_eye", "margin"),
                           summary="the aperture cut into cells x cells parts, layered per part: shows what "
                                   "a blurred edge reveals behind it, about cells^2 x the cost"),
-    "adaptive": Method(render_adaptive, "adaptive-v7", ("level_step", "level_ratio", "margin"),
+    "adaptive": Method(render_adaptive, "adaptive-v8", ("level_step", "level_ratio", "margin"),
                        summary="the layered render, with 2 x 2 sub-aperture cells only in the tiles where it errs: "
                                "a blurred cutout's edge over a blurred plane that varies"),
     "exact": Method(render_exact, "exact-v4", ("samples", "cat_eye", "margin"), uses_boxes=False,
