@@ -226,3 +226,33 @@ def test_the_gated_hybrid_runs_its_u_net_only_near_the_depth_edges():
         band = edge_weight(signed, 16.0) > 0
         assert band.any() and not torch.equal(whole[band.expand_as(whole)], classical[band.expand_as(whole)])
         assert sum(areas) < H * W / 2 if norm == "batch" else areas == [H * W]
+
+
+@pytest.mark.parametrize("color", ["srgb", "linear"])
+def test_render_model_with_an_untrained_hybrid_is_the_classical_render_of_the_photo(color, shared_assets):
+    """`render --model` (infer.render_with) with a hybrid whose correction is still 0 and no
+    identity rule gives the classical render of the linear photo (render.look.render_photo with
+    the photo look, the CoC the run's coc_ref scaled to the photo), through the network's colour
+    space and back: float rounding. (Given the photo as sRGB values instead, it is 0.16 off.)"""
+    import cv2
+
+    from dofsynth.color import srgb8_to_linear
+    from dofsynth.optics.aperture import aperture_from_dict
+    from dofsynth.render.look import Look, render_photo
+    from dofsynth.train import infer
+    from dofsynth.train.checkpoint import build_model
+    from dofsynth.train.classical import PHOTO_LOOK
+    from test_train_data import tiny_config
+
+    cfg = tiny_config(data={"color": color}, model={"kind": "hybrid", "coc_ref": 3.0, "identity": False},
+                      infer={"low_res_side": 16})
+    model = infer.for_inference(build_model(cfg).eval())
+    bgr = cv2.imread(str(shared_assets / "bg" / "kodak_kodim08.png"))
+    photo = srgb8_to_linear(np.ascontiguousarray(cv2.resize(bgr, (64, 40), interpolation=cv2.INTER_AREA)[:, :, ::-1]))
+    disparity = np.tile(np.linspace(0.0, 1.0, 64, dtype=np.float32), (40, 1))
+    got = infer.render_with(model, cfg, photo, disparity, 0.4)
+    coc_px = 3.0 * 64 / (16 * 2 ** cfg.data.levels)  # coc_ref at the photo's size (render_with's rule)
+    want = render_photo(photo, disparity, 0.4, coc_px, aperture_from_dict(PHOTO_LOOK["aperture"]), Look())
+    assert got.shape == want.shape == (40, 64, 3)
+    assert float(np.abs(got - want).max()) < (2e-6 if color == "linear" else 1e-5)
+    assert float(np.abs(got - photo).max()) > 0.05  # (the render is not the photo: a test that can fail)
