@@ -218,7 +218,10 @@ def cutout_cells(plane, box, focus: float, max_coc: float, parts, options, H: in
         _blur_into(out.reshape(6 * K, *out.shape[2:]), o, src, ks, pairs, start)
         return [(o, out[k], c) for k in range(K)], None
     shares = np.array([w for _, w in parts], np.float32)
-    ks = np.concatenate([ks, np.tensordot(shares, ks[0::3], axes=1)[None]])  # kernel 3K: the shares' sum
+    summed = shares[0] * ks[0]  # kernel 3K: the shares' sum, in cell order (numpy, not a BLAS product)
+    for share, k in zip(shares[1:], ks[3::3]):
+        summed += share * k
+    ks = np.concatenate([ks, summed[None]])
     pairs = [(3 * K, ch) for ch in range(3)] + [(3 * k + kk, ch) for k in range(K) for kk, ch in _PAIRS[3:]]
     blurs = np.zeros((3 + 3 * K, *out.shape[2:]), np.float32)
     _blur_into(blurs, o, src, ks, pairs, start)
