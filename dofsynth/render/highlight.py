@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from decimal import Decimal, localcontext
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
@@ -42,11 +43,25 @@ def _decimal_pow(base: float, exponent: float) -> float:
         return float(Decimal(base) ** Decimal(exponent))
 
 
+class _Tables(NamedTuple):
+    """The boost's tables for one (threshold, gain, power), all float64 but `start_knot`."""
+
+    t: float                # T, the linear value of the threshold
+    width: float            # the knots' spacing in m
+    m: np.ndarray           # per knot k: m_k,
+    g: np.ndarray           # g_k,
+    dg: np.ndarray          # per segment: g_k+1 - g_k,
+    h: np.ndarray           # per knot: h_k = m_k * g_k
+    scale: float            # `_segment`'s index of h: bins per unit of h - T,
+    start_knot: np.ndarray  # and the knot at each bin's start
+    a4: np.ndarray          # per segment, `_root`'s quadratic h(m_k + width f) = h_k + b f + a f^2: 4a,
+    b: np.ndarray           # b,
+    b2: np.ndarray          # and b^2
+
+
 @lru_cache(maxsize=64)
-def _tables(threshold: float, gain: float, power: float):
-    """T, the segment width and, per knot k: m_k, g_k, the slope of g and h_k = m_k * g_k;
-    `_segment`'s index of h: the scale of its bins and the knot at each bin's start; and per
-    segment `_root`'s 4a, b and b^2."""
+def _tables(threshold: float, gain: float, power: float) -> _Tables:
+    """The `_Tables` of a boost, checked."""
     if not 0.0 <= threshold < 1.0:
         raise ValueError(f"highlight threshold must be in [0, 1), got {threshold}")
     if gain < 0 or power <= 0:
@@ -64,22 +79,21 @@ def _tables(threshold: float, gain: float, power: float):
     assert np.diff(h).min() > 1.0 / scale
     start_knot = np.clip(np.searchsorted(h, starts, side="right") - 1, 0, KNOTS - 1)
     dg = np.diff(g)
-    # per segment, the quadratic's coefficients as `_root` uses them: h(m_k + width f) = h_k + b f + a f^2
     a, b = width * dg, m[:-1] * dg + width * g[:-1]
-    return t, width, m, g, dg, h, scale, start_knot, 4.0 * a, b, b * b
+    return _Tables(t, width, m, g, dg, h, scale, start_knot, 4.0 * a, b, b * b)
 
 
 _INDEX_BINS = 1 << 14
 
 
-def _segment(y: np.ndarray, tables) -> np.ndarray:
+def _segment(y: np.ndarray, tables: _Tables) -> np.ndarray:
     """The segment k of h holding each y in (T, h_KNOTS): searchsorted(h, y, "right") - 1, found
     from the knot at the start of y's bin, moved by at most one knot each way (bins hold one
     knot at most; the second test covers the bin index's rounding). Neither move leaves
     [0, KNOTS - 1]: h_0 = T < y and y < h_KNOTS."""
-    t, _, _, _, _, h, scale, start_knot = tables[:8]
-    b = ((y - t) * scale).astype(np.intp)  # >= 0: y > T
-    k = start_knot[np.minimum(b, _INDEX_BINS, out=b)]
+    h = tables.h
+    b = ((y - tables.t) * tables.scale).astype(np.intp)  # >= 0: y > T
+    k = tables.start_knot[np.minimum(b, _INDEX_BINS, out=b)]
     k -= y < h[k]
     k += y >= h[k + 1]
     return k
@@ -94,10 +108,10 @@ def _channel_max(x: np.ndarray, axis: int) -> np.ndarray:
     return m
 
 
-def _factor(m: np.ndarray, tables) -> np.ndarray:
+def _factor(m: np.ndarray, tables: _Tables) -> np.ndarray:
     """g(m) (float64) for linear maxima above T: g_k + (g_k+1 - g_k) (s - k), s = (m - T) /
     (1 - T) * KNOTS clipped to [0, KNOTS], k = min(floor(s), KNOTS - 1)."""
-    t, _, _, g, dg = tables[:5]
+    t, g, dg = tables.t, tables.g, tables.dg
     s = m - t
     s /= 1.0 - t
     np.clip(s, 0.0, 1.0, out=s)
@@ -110,23 +124,22 @@ def _factor(m: np.ndarray, tables) -> np.ndarray:
     return s
 
 
-def _root(mb: np.ndarray, tables) -> np.ndarray:
+def _root(mb: np.ndarray, tables: _Tables) -> np.ndarray:
     """m with m * g(m) = mb, for boosted maxima mb above T (float64): on segment k, with
     h(m_k + width f) = h_k + b f + a f^2 and r = mb - h_k, f = 2 r / (b + sqrt(b^2 + 4 a r))
     (the root without cancellation). Below T mb is unchanged; beyond white g is 1 + gain."""
-    t, width, m, g, _, h = tables[:6]
-    a4, b, b2 = tables[8:]
+    t, width, m, h = tables.t, tables.width, tables.m, tables.h
     inside = (mb > t) & (mb < h[-1])
     every = bool(inside.all())  # the usual case: no masks
     y = mb if every else mb[inside]
     k = _segment(y, tables)
     r = y - h[k]
     np.maximum(r, 0.0, out=r)
-    den = a4[k]
+    den = tables.a4[k]
     den *= r
-    den += b2[k]
+    den += tables.b2[k]
     np.sqrt(den, out=den)
-    den += b[k]
+    den += tables.b[k]
     f = 2.0 * r
     f /= den
     np.minimum(f, 1.0, out=f)
@@ -134,7 +147,7 @@ def _root(mb: np.ndarray, tables) -> np.ndarray:
     f += m[k]
     if every:
         return f
-    out = np.where(mb <= t, mb, mb / g[-1])
+    out = np.where(mb <= t, mb, mb / tables.g[-1])
     out[inside] = f
     return out
 
@@ -149,7 +162,7 @@ def _apply(x, threshold, gain, power, out, axis, invert: bool):
     work = np.moveaxis(out, axis, -1)  # (..., C), a view
     lead = work.reshape(-1, work.shape[-1]) if work.ndim < 2 else None
     blocks = [lead] if lead is not None else [work[r:r + _ROWS] for r in range(0, work.shape[0], _ROWS)]
-    lo = tables[0] * (1.0 - 1e-6)
+    lo = tables.t * (1.0 - 1e-6)
     for block in blocks:
         mx = _channel_max(block, -1)
         hit = mx > lo
