@@ -56,6 +56,15 @@ def test_unboost_is_the_exact_inverse_in_any_layout():
     assert boost(view, out=view) is view
     np.testing.assert_array_equal(inplace[5:40, 3:50], boost(x[5:40, 3:50]))
     np.testing.assert_array_equal(inplace[:5], x[:5])
+    canvas = planar.copy()  # a planar canvas's frame (rows apart by the canvas's width), in place
+    frame = canvas[:, 5:40, 3:50]
+    assert boost(frame, axis=0, out=frame) is frame
+    np.testing.assert_array_equal(frame, boost(planar[:, 5:40, 3:50], axis=0))
+    assert unboost(frame, axis=0, out=frame) is frame
+    np.testing.assert_allclose(canvas, planar, rtol=3e-7, atol=1e-9)
+    np.testing.assert_array_equal(canvas[:, :5], planar[:, :5])
+    strided = x.copy()[::2, ::3]  # rows not a whole number of columns apart: index tuples
+    np.testing.assert_array_equal(boost(strided, out=strided), boost(x[::2, ::3]))
     np.testing.assert_allclose(boost(np.float32([1.0, 0.5, 0.2])), [5.0, 2.5, 1.0], rtol=1e-6)
     with pytest.raises(ValueError, match="threshold"):
         boost(x, threshold=1.0)

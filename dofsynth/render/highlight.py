@@ -102,8 +102,10 @@ def _segment(y: np.ndarray, tables: _Tables) -> np.ndarray:
 def _channel_max(x: np.ndarray, axis: int) -> np.ndarray:
     """max over the channel axis with two np.maximum (numpy's reduce over a short axis is slow)."""
     chans = np.moveaxis(x, axis, 0)
-    m = chans[0].copy()
-    for c in chans[1:]:
+    if len(chans) == 1:
+        return chans[0].copy()
+    m = np.maximum(chans[0], chans[1])
+    for c in chans[2:]:
         np.maximum(m, c, out=m)
     return m
 
@@ -152,6 +154,30 @@ def _root(mb: np.ndarray, tables: _Tables) -> np.ndarray:
     return out
 
 
+def _lines(block: np.ndarray, flat: np.ndarray):
+    """Each channel of `block` (..., C) as a 1-D view over its memory, and where the values
+    at C-order positions `flat` of block[..., c] lie in it. A block of whole rows is its
+    channel flattened; a box inside wider rows (the frame of a canvas) the run from its first
+    to its last value, rows `pitch` values apart (positions row * pitch + column); other
+    layouts, index tuples."""
+    chans = [block[..., c] for c in range(block.shape[-1])]
+    try:
+        return [c.reshape(-1, copy=False) for c in chans], flat
+    except ValueError:
+        pass
+    c0 = chans[0]
+    step, row = c0.strides[-1], c0.strides[0] if c0.ndim == 2 else 0
+    if c0.ndim == 2 and step > 0 and row > 0 and row % step == 0 and row // step >= c0.shape[1]:
+        pitch, w = row // step, c0.shape[1]
+        n = (c0.shape[0] - 1) * pitch + w
+        lines = [np.lib.stride_tricks.as_strided(c, shape=(n,), strides=(step,)) for c in chans]
+        rows, cols = np.divmod(flat, w)
+        rows *= pitch
+        rows += cols
+        return lines, rows
+    return chans, np.unravel_index(flat, c0.shape)
+
+
 def _apply(x, threshold, gain, power, out, axis, invert: bool):
     tables = _tables(float(threshold), float(gain), float(power))
     x = np.asarray(x, dtype=np.float32)
@@ -171,10 +197,7 @@ def _apply(x, threshold, gain, power, out, axis, invert: bool):
             continue
         mv = mx.reshape(-1)[flat].astype(np.float64)
         scale = (_root(mv, tables) / mv) if invert else _factor(mv, tables)
-        try:  # each channel's values as one line (views: whole rows, interleaved or planar)
-            chans, idx = [block[..., c].reshape(-1, copy=False) for c in range(block.shape[-1])], flat
-        except ValueError:  # a box inside wider rows: index tuples write through it
-            chans, idx = [block[..., c] for c in range(block.shape[-1])], np.nonzero(hit)
+        chans, idx = _lines(block, flat)
         for chan in chans:  # a channel at a time: 1-D gathers, not 3-value rows
             v = chan[idx]
             chan[idx] = np.multiply(v, scale, out=v, casting="unsafe")  # float64 product, rounded once
