@@ -20,7 +20,9 @@ def resize(img: np.ndarray, w: int, h: int, nearest: bool = False, out: np.ndarr
         interp = cv2.INTER_NEAREST
     else:
         interp = cv2.INTER_AREA if (w <= sw and h <= sh) else cv2.INTER_LINEAR
-    res = cv2.resize(np.ascontiguousarray(img), (int(w), int(h)), dst=out, interpolation=interp)
+    # a window of a larger image is read where it lies (OpenCV copies only layouts it cannot
+    # take as they are, such as a flipped view)
+    res = cv2.resize(img, (int(w), int(h)), dst=out, interpolation=interp)
     if out is None:
         return res.reshape(int(h), int(w), *img.shape[2:])
     if res is not out:  # (OpenCV made its own array: the view did not suit it)
