@@ -11,6 +11,7 @@ from __future__ import annotations
 import struct
 import zlib
 
+import cv2
 import numpy as np
 
 from dofsynth.color import linear_to_srgb8
@@ -123,12 +124,15 @@ def encode_srgb_png_planar(linear: np.ndarray) -> bytes:
         raise ValueError(f"planar PNG member must be (3, H, W), got shape {linear.shape}")
     _, h, w = linear.shape
     rgb = np.empty((h, w, 3), np.uint8)
-    codes = np.empty((min(_ROWS, h), w), np.uint8)
+    codes = np.empty((3, min(_ROWS, h), w), np.uint8)
     for r0 in range(0, h, _ROWS):
         r1 = min(r0 + _ROWS, h)
         for ch in range(3):
-            linear_to_srgb8(linear[ch, r0:r1], out=codes[: r1 - r0])
-            rgb[r0:r1, :, ch] = codes[: r1 - r0]
+            linear_to_srgb8(linear[ch, r0:r1], out=codes[ch, : r1 - r0])
+        block = rgb[r0:r1]  # interleaved by cv2.merge: one pass, not three strided copies
+        merged = cv2.merge([codes[0, : r1 - r0], codes[1, : r1 - r0], codes[2, : r1 - r0]], dst=block)
+        if not np.shares_memory(merged, block):
+            block[...] = merged
     return with_srgb_chunk(encode_png_rgb(rgb, PNG_SETTINGS))
 
 
