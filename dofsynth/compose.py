@@ -203,10 +203,22 @@ def _asset(library: AssetLibrary, scene: Scene, role: str) -> Asset:
     return asset
 
 
-def _alpha_box(alpha: np.ndarray) -> tuple[slice, slice] | None:
-    """Row and column slices of `planes.alpha_box`, or None when alpha is all 0."""
-    box = alpha_box(alpha)
-    return None if box is None else (slice(box[0], box[1]), slice(box[2], box[3]))
+def _alpha_box(alpha: np.ndarray, within=None) -> tuple[slice, slice] | None:
+    """Row and column slices of `planes.alpha_box`, or None when alpha is all 0; searched only
+    `within` (y0, y1, x0, x1) when given (alpha is 0 outside it)."""
+    box = _box(alpha, within)
+    return None if box == (0, 0, 0, 0) else (slice(box[0], box[1]), slice(box[2], box[3]))
+
+
+def _written(x: int, y: int, size: tuple[int, int], sides, h: int, w: int) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1): the part of an (h, w) frame that `place_premultiplied` writes for an
+    extent of `size` (w, h) placed at (x, y), grown to the frame's edge on each cut side that
+    `extend_cut_sides` continues (alpha is 0 outside it)."""
+    y0, y1, x0, x1 = max(y, 0), min(y + size[1], h), max(x, 0), min(x + size[0], w)
+    if y1 <= y0 or x1 <= x0:
+        return 0, 0, 0, 0
+    return (0 if "top" in sides else y0, h if "bottom" in sides else y1,
+            0 if "left" in sides else x0, w if "right" in sides else x1)
 
 
 def scene_layers(scene: Scene, library: AssetLibrary) -> SceneLayers:
@@ -241,6 +253,7 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> SceneLayers:
         canvas = [Plane(rgb=big, alpha=np.broadcast_to(np.float32(1.0), (H, W)),
                         disparity=bg_plane_disp if bgp.mode == "flat" else ramp_beyond(bgp, h, w, m))]
     planes = [Plane(rgb=bg_rgb, alpha=ones, disparity=bg_plane_disp)]
+    written = []  # per cutout: the part of the frame its alpha can be > 0 in (where boxes are searched)
     for role, params in (("middle", scene.middle), ("front", scene.front)):
         asset = _asset(library, scene, role)
         _, _, ew, eh = asset.extent
@@ -248,16 +261,20 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> SceneLayers:
         premul = library.premultiplied(asset, pyramid_level((ew, eh), size))
         if canvas is None:
             prgb, pa = place_premultiplied(premul, size, params, h, w)
+            written.append(_written(params.x, params.y, size, (), h, w))
         else:
             crgb, ca = place_premultiplied(premul, size, replace(params, x=params.x + m, y=params.y + m), H, W)
             extend_cut_sides(crgb, ca, params.x + m, params.y + m, size, params.anchored)
-            canvas.append(Plane(rgb=crgb, alpha=ca, disparity=float(params.disparity), box=_box(ca)))
+            y0, y1, x0, x1 = _written(params.x + m, params.y + m, size, params.anchored, H, W)
+            canvas.append(Plane(rgb=crgb, alpha=ca, disparity=float(params.disparity),
+                                box=_box(ca, (y0, y1, x0, x1))))
             prgb, pa = crgb[m:m + h, m:m + w], ca[m:m + h, m:m + w]
+            written.append((max(y0 - m, 0), min(y1 - m, h), max(x0 - m, 0), min(x1 - m, w)))
         planes.append(Plane(rgb=prgb, alpha=pa, disparity=float(params.disparity)))
 
     boxes = []
     for n, p in enumerate(planes[1:], 1):
-        box = _alpha_box(p.alpha)
+        box = _alpha_box(p.alpha, written[n - 1])
         boxes.append(box)
         # the renderer, the boost and validation then look only inside the box
         planes[n] = replace(p, box=(0, 0, 0, 0) if box is None else (box[0].start, box[0].stop, box[1].start, box[1].stop))
@@ -267,7 +284,9 @@ def scene_layers(scene: Scene, library: AssetLibrary) -> SceneLayers:
     return SceneLayers(planes=planes, disparity=disparity, boxes=boxes, canvas=canvas, margin=m)
 
 
-def _box(alpha: np.ndarray) -> tuple[int, int, int, int]:
-    """A cutout's `Plane.box` ((0, 0, 0, 0) when it is clear)."""
-    box = alpha_box(alpha)
-    return (0, 0, 0, 0) if box is None else box
+def _box(alpha: np.ndarray, within=None) -> tuple[int, int, int, int]:
+    """A cutout's `Plane.box` ((0, 0, 0, 0) when it is clear), searched only `within` (y0, y1,
+    x0, x1) when given (alpha is 0 outside it)."""
+    y0, y1, x0, x1 = (0, alpha.shape[0], 0, alpha.shape[1]) if within is None else within
+    box = alpha_box(alpha[y0:y1, x0:x1]) if y1 > y0 and x1 > x0 else None
+    return (0, 0, 0, 0) if box is None else (box[0] + y0, box[1] + y0, box[2] + x0, box[3] + x0)

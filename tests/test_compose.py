@@ -46,6 +46,7 @@ def layers_of(smoke_recipe, smoke_library):
 
 
 def test_layers_shapes_and_renderer_contract(layers_of):
+    assert any(o.anchored for s, _ in layers_of for o in (s.middle, s.front))  # objects cut by their photo
     for s, L in layers_of:
         H, W = s.size
         assert [p.rgb.shape for p in L.planes] == [(H, W, 3)] * 3
@@ -56,7 +57,8 @@ def test_layers_shapes_and_renderer_contract(layers_of):
         for t in s.targets:
             validate_planes(L.planes, t.focus, t.max_coc)
         assert L.planes[0].box is None
-        for p in L.planes[1:]:  # each cutout carries the tight box of alpha > 0 (empty: (0, 0, 0, 0))
+        assert L.canvas is not None
+        for p in L.planes[1:] + L.canvas[1:]:  # each cutout carries the tight box of alpha > 0 (empty: (0, 0, 0, 0))
             y0, y1, x0, x1 = p.box
             on = p.alpha > 0
             assert on[y0:y1, x0:x1].sum() == on.sum()
