@@ -24,7 +24,9 @@ import numpy as np
 from dofsynth.assets import AssetLibrary
 from dofsynth.compose import scene_layers
 from dofsynth.record import held_members, unknown_options
+from dofsynth.render import method_entry
 from dofsynth.render.look import prepare_planes, render_look, restore, views_adding_up
+from dofsynth.render.planes import validate_planes
 from dofsynth.render.subaperture import halves
 from dofsynth.scene import Scene, Target
 
@@ -46,9 +48,13 @@ class SampleRender:
 
     def _prepared(self) -> list:
         """The planes the renderer takes (`SceneLayers.blur_planes`: `margin` px past the frame),
-        prepared in place; `planes` are views of their frame part, so they are prepared too."""
+        their values checked once for all targets (`validate_planes`), then prepared in place;
+        `planes` are views of their frame part, so they are prepared too."""
         if self._blur_planes is None:
-            self._blur_planes = prepare_planes(list(self._layers.blur_planes), self.look)
+            planes = list(self._layers.blur_planes)
+            t = self.scene.targets[0] if self.scene.targets else Target(0.0, 0.0)
+            validate_planes(planes, t.focus, t.max_coc, use_boxes=method_entry(self.look.method).uses_boxes)
+            self._blur_planes = prepare_planes(planes, self.look)
         return self._blur_planes
 
     def aif_rows(self, r0: int, r1: int) -> np.ndarray:
@@ -62,7 +68,8 @@ class SampleRender:
         """Target n's render on the canvas, cut to the frame (3, H, W)."""
         t = self.scene.targets[n]
         m = self._layers.margin
-        img = render_look(self._prepared(), t.focus, t.max_coc, aperture or self.scene.aperture, self.look, m)
+        img = render_look(self._prepared(), t.focus, t.max_coc, aperture or self.scene.aperture, self.look, m,
+                          values_checked=True)
         if not m:
             return img
         h, w = self.scene.size

@@ -359,3 +359,18 @@ def test_the_background_resampled_into_a_canvas_view_is_the_same_as_on_its_own()
         assert background_image(photo, crop, flip, h, w, out=view) is view
         assert np.array_equal(view, alone) and alone.min() == 0.0
         assert not canvas[:4].any() and not canvas[:, :4].any()
+
+
+def test_a_sample_refuses_planes_with_non_finite_values(layers_of, smoke_library, monkeypatch):
+    """The planes' values are checked once per sample, before its first target: a NaN in the
+    background is still refused by name."""
+    import dofsynth.sample as sample_module
+
+    s, L = layers_of[0]
+    bg = L.blur_planes[0]
+    rgb = np.array(bg.rgb, copy=True)
+    rgb[3, 4, 1] = np.nan
+    poisoned = replace(L, canvas=[replace(bg, rgb=rgb)] + list(L.blur_planes[1:]))
+    monkeypatch.setattr(sample_module, "scene_layers", lambda scene, library: poisoned)
+    with pytest.raises(ValueError, match=r"planes\[0\]\.rgb contains NaN or inf"):
+        sample_module.render_sample(s, smoke_library)

@@ -509,6 +509,22 @@ def test_non_finite_values_in_large_frames_are_refused_in_any_row():
                 render_planes([Plane(arr, ones, 0.5)], 0.3, 1.0)
 
 
+def test_values_checked_leaves_out_only_the_pass_over_values():
+    """A caller that has validated the planes' values (a sample, once for all its targets) can
+    say so: a NaN is then not looked for, but shapes, boxes, focus and max_coc still are."""
+    g = rng(24)
+    img = g.random((9, 11, 3), dtype=np.float32)
+    img[4, 7, 2] = np.nan
+    planes = [opaque(img, 0.4)]
+    with pytest.raises(ValueError, match="contains NaN"):
+        render_planes(planes, 0.3, 4.0)
+    assert np.isnan(render_planes(planes, 0.3, 4.0, values_checked=True)).any()
+    with pytest.raises(ValueError, match="focus"):
+        render_planes(planes, 1.5, 4.0, values_checked=True)
+    with pytest.raises(ValueError, match="alpha must be"):
+        render_planes([Plane(img, np.ones((9, 10), np.float32), 0.4)], 0.3, 4.0, values_checked=True)
+
+
 @pytest.mark.parametrize("method", ["layered", "exact"])
 def test_planar_result_is_the_same_image(method):
     g = rng(22)

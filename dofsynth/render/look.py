@@ -114,18 +114,21 @@ def prepare_planes(planes: list[Plane], look: Look) -> list[Plane]:
 
 
 def render_look(planes: list[Plane], focus: float, max_coc: float, aperture: Aperture, look: Look,
-                margin: int = 0) -> np.ndarray:
+                margin: int = 0, values_checked: bool = False) -> np.ndarray:
     """Planar (3, H, W) float32 render of prepared planes (`prepare_planes`), not yet restored:
     with chromatic aberration channel ch is the render at max_coc * chromatic[ch]. `margin`: px
     the planes go on past the frame on each side; only the frame of the result is meant (what
-    cat-eye is measured on; the layered method computes nothing else)."""
+    cat-eye is measured on; the layered method computes nothing else). `values_checked`: as
+    `render_planes`'s (the planes' values are checked once either way)."""
     scales, kw = look.chromatic, look.keywords()
     if margin and "margin" in METHODS[look.method].options:  # (a method that does not read it renders all)
         kw["margin"] = int(margin)
-    img = render_planes(planes, float(focus), float(max_coc) * scales[1], aperture, planar=True, **kw)
+    img = render_planes(planes, float(focus), float(max_coc) * scales[1], aperture, planar=True,
+                        values_checked=values_checked, **kw)
     for ch in (0, 2):
         if scales[ch] != scales[1]:
-            img[ch] = render_planes(planes, float(focus), float(max_coc) * scales[ch], aperture, planar=True, **kw)[ch]
+            img[ch] = render_planes(planes, float(focus), float(max_coc) * scales[ch], aperture, planar=True,
+                                    values_checked=True, **kw)[ch]
     return img
 
 

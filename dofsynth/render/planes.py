@@ -86,10 +86,12 @@ def _range(name: str, arr: np.ndarray) -> tuple[float, float]:
     return lo, hi
 
 
-def validate_planes(planes, focus: float, max_coc: float, use_boxes: bool = True) -> None:
+def validate_planes(planes, focus: float, max_coc: float, use_boxes: bool = True, values: bool = True) -> None:
     """Refuse bad renderer input with a message that names the argument. A plane's `box` is
     checked against the frame; with `use_boxes` its rgb and alpha are checked only inside it
-    (what the layered renderer reads), else everywhere."""
+    (what the layered renderer reads), else everywhere. `values=False` leaves out the pass over
+    the arrays' values (finite, in range): for planes already checked so (shapes, boxes and the
+    scalars are always checked)."""
     planes = list(planes)
     if not planes:
         raise ValueError("planes: need at least one plane")
@@ -122,6 +124,8 @@ def validate_planes(planes, focus: float, max_coc: float, use_boxes: bool = True
                 raise ValueError(f"planes[{i}].box must be (y0, y1, x0, x1) inside the {shape} frame, got {box}")
             if use_boxes:
                 inside = (slice(int(box[0]), int(box[1])), slice(int(box[2]), int(box[3])))
+        if not values:
+            continue
         (rgb_lo, _), (a_lo, a_hi), (d_lo, d_hi) = (_range(f"planes[{i}].{name}", arr) for name, arr in
                                                    (("rgb", rgb[inside]), ("alpha", alpha[inside]), ("disparity", d)))
         if a_lo < 0 or a_hi > 1:
