@@ -17,6 +17,7 @@ cached or not, gets the same bytes. numba compiles pymatting for a generic x86-6
 """
 from __future__ import annotations
 
+import functools
 import io
 import os
 import sys
@@ -44,11 +45,18 @@ def cache_dir() -> Path:
 def estimator_id(space: str = "linear") -> str:
     """The estimator, its version and (unless linear) its space, as sample records name it
     (without importing it): "pymatting-ml-1.1.16" or "pymatting-ml-1.1.16-srgb"."""
-    from importlib.metadata import version
-
     if space not in SPACES:
         raise ValueError(f"foreground estimation space must be one of {SPACES}, got {space!r}")
-    return f"{ESTIMATOR}-{version('pymatting')}" + ("" if space == "linear" else f"-{space}")
+    return f"{ESTIMATOR}-{_installed_version()}" + ("" if space == "linear" else f"-{space}")
+
+
+@functools.lru_cache(maxsize=1)
+def _installed_version() -> str:
+    """pymatting's installed version, read from its metadata once per process (each sample's
+    record names it: reading the metadata files every time cost about 1 ms)."""
+    from importlib.metadata import version
+
+    return version("pymatting")
 
 
 def _estimator():
