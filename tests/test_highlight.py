@@ -64,6 +64,12 @@ def test_unboost_is_the_exact_inverse_in_any_layout():
     np.testing.assert_allclose(canvas, planar, rtol=3e-7, atol=1e-9)
     np.testing.assert_array_equal(canvas[:, :5], planar[:, :5])
     strided = x.copy()[::2, ::3]  # rows not a whole number of columns apart: index tuples
+    odd = x.copy()
+    odd[10, 10] = (0.95, np.nan, 0.1)  # a NaN makes the max NaN: the pixel is left alone, any layout
+    for a, kw in ((odd, {}), (np.ascontiguousarray(odd.transpose(2, 0, 1)), {"axis": 0})):
+        b = boost(a, **kw)
+        got = b[10, 10] if a is odd else b[:, 10, 10]
+        np.testing.assert_array_equal(got, odd[10, 10])
     np.testing.assert_array_equal(boost(strided, out=strided), boost(x[::2, ::3]))
     np.testing.assert_allclose(boost(np.float32([1.0, 0.5, 0.2])), [5.0, 2.5, 1.0], rtol=1e-6)
     with pytest.raises(ValueError, match="threshold"):

@@ -189,17 +189,34 @@ def _apply(x, threshold, gain, power, out, axis, invert: bool):
     lead = work.reshape(-1, work.shape[-1]) if work.ndim < 2 else None
     blocks = [lead] if lead is not None else [work[r:r + _ROWS] for r in range(0, work.shape[0], _ROWS)]
     lo = tables.t * (1.0 - 1e-6)
+    interleaved = work.strides[-1] == work.itemsize and work.shape[-1] > 1
     for block in blocks:
-        mx = _channel_max(block, -1)
-        hit = mx > lo
-        flat = np.flatnonzero(hit)
-        if not flat.size:
-            continue
-        mv = mx.reshape(-1)[flat].astype(np.float64)
+        if interleaved:  # the few pixels with a value above lo, found in one contiguous pass
+            flat = np.flatnonzero(block > lo)
+            if not flat.size:
+                continue
+            flat //= block.shape[-1]
+            flat = flat[np.concatenate(([True], flat[1:] != flat[:-1]))]  # each pixel once, in order
+            chans, idx = _lines(block, flat)
+            vals = [chan[idx] for chan in chans]
+            mx = np.maximum(vals[0], vals[1])
+            for v in vals[2:]:
+                np.maximum(mx, v, out=mx)
+            hit = mx > lo  # (False where a NaN makes the max NaN, as below)
+            if not hit.all():
+                flat, mx, vals = flat[hit], mx[hit], [v[hit] for v in vals]
+                chans, idx = _lines(block, flat)
+        else:  # planar: contiguous channel planes, their max in two passes
+            mx = _channel_max(block, -1)
+            flat = np.flatnonzero(mx > lo)
+            if not flat.size:
+                continue
+            mx = mx.reshape(-1)[flat]
+            chans, idx = _lines(block, flat)
+            vals = [chan[idx] for chan in chans]
+        mv = mx.astype(np.float64)
         scale = (_root(mv, tables) / mv) if invert else _factor(mv, tables)
-        chans, idx = _lines(block, flat)
-        for chan in chans:  # a channel at a time: 1-D gathers, not 3-value rows
-            v = chan[idx]
+        for chan, v in zip(chans, vals):  # a channel at a time: 1-D gathers, not 3-value rows
             chan[idx] = np.multiply(v, scale, out=v, casting="unsafe")  # float64 product, rounded once
     return out
 
