@@ -142,8 +142,8 @@ def linear_to_srgb8(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         np.minimum(flat_in[a:b], np.float32(2.0), out=vv)  # +inf -> 2 (its bin holds NaNs); NaN stays
         np.right_shift(vv.view(np.uint32), 16, out=ii, casting="unsafe")
         o = flat_out[a:b]
-        _BASE.take(ii, out=o)
-        _STEP.take(ii, out=tt)
+        _BASE.take(ii, out=o, mode="wrap")  # (ii < 2**16 always: "wrap" only skips the bounds checks, 2x faster)
+        _STEP.take(ii, out=tt, mode="wrap")
         np.greater_equal(vv, tt, out=cc)  # False against NaN: no threshold in the bin
         o += cc
     return out
