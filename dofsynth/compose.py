@@ -76,19 +76,20 @@ class SceneLayers:
 
 def background_image(rgb: np.ndarray, crop, flip: bool, h: int, w: int, out: np.ndarray | None = None) -> np.ndarray:
     """The background photo's (x, y, w, h) `crop` (flipped first with `flip`) resampled to
-    (h, w, 3), clipped at 0; written into `out` (a view of a larger canvas) when given."""
+    (h, w, 3); written into `out` (a view of a larger canvas) when given. `rgb` >= 0 (as
+    `AssetLibrary.load_background` gives it) stays so: area and linear resampling weigh
+    with weights >= 0."""
     x, y, cw, ch = (int(v) for v in crop)
     part = rgb[y:y + ch, x:x + cw]
     if flip:
         part = part[:, ::-1]
-    out = resize(part, w, h, out=out)
-    return np.maximum(out, 0.0, out=out)
+    return resize(part, w, h, out=out)
 
 
 def beyond_frame(rgb: np.ndarray, crop, flip: bool, h: int, w: int, m: int, out: np.ndarray | None = None) -> np.ndarray:
     """The background photo around its crop on a canvas of (h + 2m, w + 2m): the photo's own
     pixels `m` output px past each frame edge, at the crop's scale, where it has them, its edge
-    replicated where it does not, clipped at 0. With `out` (that canvas), only its part outside
+    replicated where it does not (>= 0 as `background_image`'s). With `out` (that canvas), only its part outside
     the frame [m:m + h, m:m + w] is written: the frame is `background_image`'s, which the caller
     puts there (this one's resampling grid may be up to half a px off there); without, a new
     canvas, frame included."""
@@ -108,13 +109,10 @@ def beyond_frame(rgb: np.ndarray, crop, flip: bool, h: int, w: int, m: int, out:
     rows = np.clip(np.arange(H), max(oy, 0), min(oy + part.shape[0], H) - 1) - oy
     cols = np.clip(np.arange(W), max(ox, 0), min(ox + part.shape[1], W) - 1) - ox
     if out is None:
-        out = part[np.ix_(rows, cols)]
-        return np.maximum(out, 0.0, out=out)
+        return part[np.ix_(rows, cols)]
     for ys, xs in ((slice(0, m), slice(0, W)), (slice(m + h, H), slice(0, W)),  # above, below, left, right
                    (slice(m, m + h), slice(0, m)), (slice(m, m + h), slice(m + w, W))):
-        band = out[ys, xs]
-        band[...] = part[np.ix_(rows[ys], cols[xs])]
-        np.maximum(band, 0.0, out=band)
+        out[ys, xs] = part[np.ix_(rows[ys], cols[xs])]
     return out
 
 

@@ -350,7 +350,7 @@ def test_the_canvas_continues_the_ramp_and_cut_objects_and_repeats_only_where_th
 def test_the_background_resampled_into_a_canvas_view_is_the_same_as_on_its_own():
     from dofsynth.compose import background_image
 
-    photo = np.random.default_rng(1).random((90, 120, 3)).astype(np.float32) - 0.6  # some below 0
+    photo = np.maximum(np.random.default_rng(1).random((90, 120, 3)).astype(np.float32) - 0.6, 0.0)  # many 0
     for crop, flip, (h, w) in (((10, 5, 80, 60), False, (40, 30)), ((0, 0, 50, 50), True, (70, 70)),
                                ((3, 4, 30, 20), False, (20, 30))):  # shrink, grow, same size
         alone = background_image(photo, crop, flip, h, w)

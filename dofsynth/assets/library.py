@@ -162,7 +162,8 @@ class AssetLibrary:
         return data
 
     def load_background(self, asset: Asset) -> np.ndarray:
-        """Linear-light RGB (H, W, 3) float32, read-only."""
+        """Linear-light RGB (H, W, 3) float32 >= 0 (negative values of a float file clipped),
+        read-only."""
         def make():
             if asset.path.startswith("builtin:"):
                 img = srgb8_to_linear(B.background_pixels(asset.path.split("/", 1)[1]))
@@ -170,7 +171,8 @@ class AssetLibrary:
                 raw = decode_asset(self._read(asset.path, asset.sha256), asset.path, codes=True)
                 check_size(asset.path, raw.shape[1], raw.shape[0])
                 img = flatten(colour_linear(raw, asset.path), raw, asset.path, self.rules.transparent_background)
-            return np.ascontiguousarray(img, dtype=np.float32)
+            img = np.ascontiguousarray(img, dtype=np.float32)
+            return np.maximum(img, 0.0, out=img if img.flags.writeable else None)
         return self._cached(asset, "linear", make)
 
     def load_foreground(self, asset: Asset) -> tuple[np.ndarray, np.ndarray]:
