@@ -144,7 +144,12 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
         chans = range(c0, min(c0 + group, C))
         x = read(chans, 0, shape[0], 0, shape[1])
         if a == 1:  # (G, a, u)
-            x = np.stack([cv2.transpose(ch) for ch in x])
+            xt = np.empty((x.shape[0], x.shape[2], x.shape[1]), np.float32)
+            for ch, dst in zip(x, xt):  # straight into the stack (no copy of E)
+                res = cv2.transpose(ch, dst=dst)
+                if res is not dst:
+                    dst[...] = res
+            x = xt
         # the group's sums in space, (G, lo_a, lo_u): the output itself for a vertical ramp
         res = [out[c0 : c0 + len(chans)] if a == 0 else np.zeros((len(chans), lo_a, lo_u), np.float32) for out in outs]
         for ck, s, p0, p1, q0, q1, j0, small, passes_of in plans:
@@ -174,7 +179,10 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
                 for m, (wv, kn) in enumerate(passes):
                     if m not in fwd:
                         buf = np.empty((len(chans), n_k, nu2), np.complex64)
-                        np.multiply(spec[:, p0 - P0 : p1 - P0], wv[:, None], out=buf[:, : p1 - p0])
+                        # the real weight times both parts of each value (float32 views: the same
+                        # products as a complex multiply by w + 0i, without its other terms)
+                        np.multiply(spec[:, p0 - P0 : p1 - P0].view(np.float32), wv[:, None],
+                                    out=buf[:, : p1 - p0].view(np.float32))
                         buf[:, p1 - p0 :] = 0.0
                         fwd[m] = sfft.fft(buf, axis=1, overwrite_x=True)
                     ks = line_spectrum(kn, s, n_u, n_k)
