@@ -28,6 +28,7 @@ import numpy as np
 from dofsynth.assets import Asset, AssetLibrary
 from dofsynth.assets.placement import ObjectParams, placed_size
 from dofsynth.image import pyramid_level, resize
+from dofsynth.render.frame import grab
 from dofsynth.render.planes import Plane, alpha_box, background_disparity
 from dofsynth.scene import Scene
 
@@ -105,14 +106,12 @@ def beyond_frame(rgb: np.ndarray, crop, flip: bool, h: int, w: int, m: int, out:
     part = resize(window, part_w, part_h)
     oy, ox = m + round((y0 - y) / sy), m + round((x0 - x) / sx)  # where the window lands on the canvas
     H, W = h + 2 * m, w + 2 * m
-    # canvas pixel (i, j) is part's (rows[i], cols[j]): the window where it lands, its edge beyond
-    rows = np.clip(np.arange(H), max(oy, 0), min(oy + part.shape[0], H) - 1) - oy
-    cols = np.clip(np.arange(W), max(ox, 0), min(ox + part.shape[1], W) - 1) - ox
+    # canvas pixel (i, j) is part's (i - oy, j - ox): the window where it lands, its edge beyond
     if out is None:
-        return part[np.ix_(rows, cols)]
+        return np.array(grab(part, -oy, H - oy, -ox, W - ox, True), copy=True)
     for ys, xs in ((slice(0, m), slice(0, W)), (slice(m + h, H), slice(0, W)),  # above, below, left, right
                    (slice(m, m + h), slice(0, m)), (slice(m, m + h), slice(m + w, W))):
-        out[ys, xs] = part[np.ix_(rows[ys], cols[xs])]
+        grab(part, ys.start - oy, ys.stop - oy, xs.start - ox, xs.stop - ox, True, out[ys, xs])
     return out
 
 
