@@ -10,8 +10,9 @@ Each case renders the same samples of a recipe (each tree's own copy of it) at -
 own size, so 32 px at 1024 px for recipes/deeplens-18k.toml): "built-in" is that recipe with
 the built-in assets, "real" is recipes/shared-assets.toml on ../shared/assets (2 targets per
 sample, the photos' estimated foregrounds cached on disk as in a second run). Every
-(round, tree, case) runs in a fresh process with the tree first on sys.path, renders one
-warm-up sample (reported apart as `first`), then its share of the samples; the rounds
+(round, tree, case) runs in a fresh process with the tree first on sys.path, renders --warm
+warm-up samples (4 by default, indices past the measured ones; the first reported apart as
+`first`), then its share of the samples; the rounds
 interleave trees and cases, so a slow spell of a shared machine hits them all.
 
 Each process is set up as a generation worker is (`setup_process`: one OpenCV thread, the
@@ -108,8 +109,9 @@ def _floor(library, key: str, members: dict[str, bytes], folder: Path) -> float:
     return spent
 
 
-def child(case: str, size: int, total: int, indices: list[int], warm: int, method: str = "") -> dict:
-    """One process's measurements (run with the tree under test first on sys.path)."""
+def child(case: str, size: int, total: int, indices: list[int], warm: list[int], method: str = "") -> dict:
+    """One process's measurements (run with the tree under test first on sys.path): the samples
+    `warm` first, unmeasured but the first of them (`first`), then `indices`."""
     from dofsynth.generate import render_one
     from dofsynth.generate.worker import library_for, setup_process
     from dofsynth.shards import write_shard
@@ -120,10 +122,12 @@ def child(case: str, size: int, total: int, indices: list[int], warm: int, metho
     out = {"sample": [], "floor": []}
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        t = time.process_time()
-        key, members = render_one(recipe, library, "train", warm)
-        write_shard(folder / "s.tar", [(key, members)])
-        out["first"] = time.process_time() - t
+        for n, i in enumerate(warm):
+            t = time.process_time()
+            key, members = render_one(recipe, library, "train", i)
+            write_shard(folder / "s.tar", [(key, members)])
+            if n == 0:
+                out["first"] = time.process_time() - t
         for i in indices:
             t = time.process_time()
             key, members = render_one(recipe, library, "train", i)
@@ -143,16 +147,16 @@ def _own_peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _run_child(tree: Path, case: str, size: int, total: int, indices: list[int], warm: int, method: str = "") -> dict:
+def _run_child(tree: Path, case: str, size: int, total: int, indices: list[int], warm: list[int], method: str = "") -> dict:
     code = ("import sys, json; sys.path.insert(0, sys.argv[1]); sys.path.insert(1, sys.argv[2]); "
             "import per_sample as p; print(json.dumps(p.child(sys.argv[3], int(sys.argv[4]), int(sys.argv[5]), "
-            "json.loads(sys.argv[6]), int(sys.argv[7]), sys.argv[8])))")
+            "json.loads(sys.argv[6]), json.loads(sys.argv[7]), sys.argv[8])))")
     # the environment a generation worker has: BLAS and OpenMP threads as the machine sets them
     # (this set OMP_NUM_THREADS=1 once, which hid what OpenBLAS threads spinning after each
     # product cost a worker: 0.08 CPU s a built-in sample before d8dbc2a)
     env = dict(os.environ)
     res = subprocess.run([sys.executable, "-c", code, str(tree), str(ROOT / "benchmarks"), case, str(size), str(total),
-                          json.dumps(indices), str(warm), method], capture_output=True, text=True, env=env, cwd=tree)
+                          json.dumps(indices), json.dumps(warm), method], capture_output=True, text=True, env=env, cwd=tree)
     if res.returncode:
         raise SystemExit(f"{tree} {case}: the measuring process failed:\n{res.stderr[-3000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -166,6 +170,10 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=1024, help="frame size in px (default 1024)")
     ap.add_argument("--samples", type=int, default=24, help="samples per case and tree (default 24)")
     ap.add_argument("--rounds", type=int, default=3, help="processes per case and tree, interleaved (default 3)")
+    ap.add_argument("--warm", type=int, default=4,
+                    help="samples each process renders before it measures (default 4; indices past --samples): a "
+                         "worker that has rendered a few has the CoC grid's kernels cached, as the marginal cost "
+                         "of a sample in a long job assumes")
     ap.add_argument("--cases", nargs="+", default=["built-in", "real"], choices=["built-in", "real"])
     ap.add_argument("--method", default="", help="render every tree's samples with this method (default: each "
                     "tree's recipes' own)")
@@ -177,16 +185,19 @@ def main(argv=None) -> int:
     if len(cases) < len(args.cases):
         print(f"(no real-photo case: {SHARED} is missing)")
     print(f"cores: {os.cpu_count()}, load average: {' '.join(f'{x:.1f}' for x in os.getloadavg())}; "
-          f"{args.size} px, {args.samples} samples per case in {args.rounds} interleaved processes", flush=True)
+          f"{args.size} px, {args.samples} samples per case in {args.rounds} interleaved processes, each after "
+          f"{max(args.warm, 1)} warm-up samples", flush=True)
     if "real" in cases:  # the estimated foregrounds on disk first, as in any run after the first
-        _run_child(trees[-1][0], "real", args.size, args.samples, list(range(args.samples)), args.samples, trees[-1][1])
+        _run_child(trees[-1][0], "real", args.size, args.samples, list(range(args.samples)),
+                   list(range(args.samples, args.samples + args.rounds * max(args.warm, 1))), trees[-1][1])
     per = args.samples // args.rounds
     got = {(t, c): {"sample": [], "floor": [], "first": [], "peak_mib": 0.0} for t in trees for c in cases}
     for r in range(args.rounds):
         indices = list(range(r * per, (r + 1) * per if r < args.rounds - 1 else args.samples))
         for tree in trees:
             for case in cases:
-                m = _run_child(tree[0], case, args.size, args.samples, indices, args.samples + r, tree[1])
+                warm = list(range(args.samples + r * max(args.warm, 1), args.samples + (r + 1) * max(args.warm, 1)))
+                m = _run_child(tree[0], case, args.size, args.samples, indices, warm, tree[1])
                 g = got[(tree, case)]
                 g["sample"] += m["sample"]
                 g["floor"] += m["floor"]
@@ -204,7 +215,7 @@ def main(argv=None) -> int:
             print(f"{name[-28:]:<28} {case:<9} {mean:>9.3f} {statistics.stdev(s):>6.3f} "
                   f"{min(s):>5.2f}-{max(s):<6.2f} {floor:>8.3f} {mean / floor:>6.2f} {statistics.fmean(g['first']):>8.2f} "
                   f"{g['peak_mib']:>9.0f} {mean / base:>9.2f}", flush=True)
-    print("(CPU seconds per sample, mean over the samples; ratio: mean sample / mean floor; first: the warm-up "
+    print("(CPU seconds per sample, mean over the samples; ratio: mean sample / mean floor; first: the first warm-up "
           "sample of each process; peak: the measuring process's own maximum RSS.)")
     return 0
 
