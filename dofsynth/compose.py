@@ -90,10 +90,10 @@ def background_image(rgb: np.ndarray, crop, flip: bool, h: int, w: int, out: np.
 def beyond_frame(rgb: np.ndarray, crop, flip: bool, h: int, w: int, m: int, out: np.ndarray | None = None) -> np.ndarray:
     """The background photo around its crop on a canvas of (h + 2m, w + 2m): the photo's own
     pixels `m` output px past each frame edge, at the crop's scale, where it has them, its edge
-    replicated where it does not (>= 0 as `background_image`'s). With `out` (that canvas), only its part outside
-    the frame [m:m + h, m:m + w] is written: the frame is `background_image`'s, which the caller
-    puts there (this one's resampling grid may be up to half a px off there); without, a new
-    canvas, frame included."""
+    replicated where it does not (>= 0 as `background_image`'s). With `out` (that canvas),
+    only its part outside the frame [m:m + h, m:m + w] is written: the frame is
+    `background_image`'s, which the caller puts there (this one's resampling grid may be up to
+    half a px off there); without, a new canvas, frame included."""
     x, y, cw, ch = (int(v) for v in crop)
     ph, pw = rgb.shape[:2]
     sx, sy = cw / w, ch / h
