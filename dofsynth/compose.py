@@ -167,8 +167,9 @@ def lazy_zeros(shape) -> np.ndarray:
 
 def place_premultiplied(premul: np.ndarray, size: tuple[int, int], params: ObjectParams,
                         h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """An object's premultiplied extent (any pyramid level) flipped, resized to `size` (w, h) and
-    put at (params.x, params.y) of an (h, w) frame: straight colour (H, W, 3) and alpha (H, W)."""
+    """An object's premultiplied extent (any pyramid level; >= 0, as `AssetLibrary.premultiplied`
+    gives it, which resampling keeps) flipped, resized to `size` (w, h) and put at (params.x,
+    params.y) of an (h, w) frame: straight colour (H, W, 3) and alpha (H, W)."""
     if params.flip:
         premul = premul[:, ::-1]
     pw, ph = size
@@ -180,7 +181,6 @@ def place_premultiplied(premul: np.ndarray, size: tuple[int, int], params: Objec
     if x1 <= x0 or y1 <= y0:
         return out_rgb, out_a
     part = small[y0 - params.y:y1 - params.y, x0 - params.x:x1 - params.x]
-    np.maximum(small, 0.0, out=small)  # `small` is our own array; contiguous is fastest
     pa = np.minimum(part[..., 3], 1.0, out=out_a[y0:y1, x0:x1])
     col = part[..., :3]
     # straight colour = premultiplied / alpha where alpha > 1e-6, else 0

@@ -182,16 +182,17 @@ class AssetLibrary:
         return self._cached(asset, "linear", lambda: self._foreground(asset, whole=True))
 
     def premultiplied(self, asset: Asset, level: int = 0) -> np.ndarray:
-        """(h, w, 4) float32 of a foreground's extent: linear colour x alpha, and alpha, read-only;
-        at `level` k > 0 area-halved k times (`dofsynth.image.area_halve`), what an object placed
-        at a small scale is resampled from. Cached by the files' sha256 and the level, so a
-        worker keeps what it places, not whole photos."""
+        """(h, w, 4) float32 >= 0 of a foreground's extent: linear colour x alpha, and alpha,
+        read-only; at `level` k > 0 area-halved k times (`dofsynth.image.area_halve`), what an
+        object placed at a small scale is resampled from. Cached by the files' sha256 and the
+        level, so a worker keeps what it places, not whole photos."""
         if level > 0:
             return self._cached(asset, f"premul@{level}", lambda: area_halve(self.premultiplied(asset, level - 1)))
 
         def make():
             rgb, alpha = self._foreground(asset, whole=False)
-            return premultiply(rgb, alpha, (0, 0, alpha.shape[1], alpha.shape[0]))
+            p = premultiply(rgb, alpha, (0, 0, alpha.shape[1], alpha.shape[0]))
+            return np.maximum(p, 0.0, out=p)  # >= 0 once here: resampling keeps it so
         return self._cached(asset, "premul@0", make)
 
     def _foreground(self, asset: Asset, whole: bool) -> tuple[np.ndarray, np.ndarray]:
