@@ -99,11 +99,11 @@ def _segment(y: np.ndarray, tables: _Tables) -> np.ndarray:
     return k
 
 
-def _channel_max(x: np.ndarray, axis: int) -> np.ndarray:
-    """max over the channel axis with two np.maximum (numpy's reduce over a short axis is slow)."""
-    chans = np.moveaxis(x, axis, 0)
+def _channel_max(chans) -> np.ndarray:
+    """The elementwise max of a sequence of same-shape channels (a new array), by np.maximum
+    pairwise (numpy's reduce over a short axis is slow); NaN propagates."""
     if len(chans) == 1:
-        return chans[0].copy()
+        return np.array(chans[0], copy=True)
     m = np.maximum(chans[0], chans[1])
     for c in chans[2:]:
         np.maximum(m, c, out=m)
@@ -199,15 +199,13 @@ def _apply(x, threshold, gain, power, out, axis, invert: bool):
             flat = flat[np.concatenate(([True], flat[1:] != flat[:-1]))]  # each pixel once, in order
             chans, idx = _lines(block, flat)
             vals = [chan[idx] for chan in chans]
-            mx = np.maximum(vals[0], vals[1])
-            for v in vals[2:]:
-                np.maximum(mx, v, out=mx)
+            mx = _channel_max(vals)
             hit = mx > lo  # (False where a NaN makes the max NaN, as below)
             if not hit.all():
                 flat, mx, vals = flat[hit], mx[hit], [v[hit] for v in vals]
                 chans, idx = _lines(block, flat)
         else:  # planar: contiguous channel planes, their max in two passes
-            mx = _channel_max(block, -1)
+            mx = _channel_max(np.moveaxis(block, -1, 0))
             flat = np.flatnonzero(mx > lo)
             if not flat.size:
                 continue
