@@ -182,21 +182,22 @@ def main(argv=None) -> int:
     trees = [(Path(t.split(":")[0]).resolve(), t.split(":")[1] if ":" in t else args.method)
              for t in (args.tree or [str(ROOT)])]
     cases = [c for c in args.cases if c != "real" or (SHARED / "SOURCES.md").is_file()]
+    n_warm = max(args.warm, 1)  # (the first warm-up sample is reported as `first`)
     if len(cases) < len(args.cases):
         print(f"(no real-photo case: {SHARED} is missing)")
     print(f"cores: {os.cpu_count()}, load average: {' '.join(f'{x:.1f}' for x in os.getloadavg())}; "
           f"{args.size} px, {args.samples} samples per case in {args.rounds} interleaved processes, each after "
-          f"{max(args.warm, 1)} warm-up samples", flush=True)
+          f"{n_warm} warm-up samples", flush=True)
     if "real" in cases:  # the estimated foregrounds on disk first, as in any run after the first
         _run_child(trees[-1][0], "real", args.size, args.samples, list(range(args.samples)),
-                   list(range(args.samples, args.samples + args.rounds * max(args.warm, 1))), trees[-1][1])
+                   list(range(args.samples, args.samples + args.rounds * n_warm)), trees[-1][1])
     per = args.samples // args.rounds
     got = {(t, c): {"sample": [], "floor": [], "first": [], "peak_mib": 0.0} for t in trees for c in cases}
     for r in range(args.rounds):
         indices = list(range(r * per, (r + 1) * per if r < args.rounds - 1 else args.samples))
+        warm = list(range(args.samples + r * n_warm, args.samples + (r + 1) * n_warm))  # past the measured ones
         for tree in trees:
             for case in cases:
-                warm = list(range(args.samples + r * max(args.warm, 1), args.samples + (r + 1) * max(args.warm, 1)))
                 m = _run_child(tree[0], case, args.size, args.samples, indices, warm, tree[1])
                 g = got[(tree, case)]
                 g["sample"] += m["sample"]
