@@ -1,12 +1,13 @@
 """How wrong each depth-corruption kind makes the disparity: MAE against the clean map.
 
-    .venv/bin/python benchmarks/depth_errors.py --data OUT [--split test] [--samples 60] [--predicted RUN]
+    .venv/bin/python benchmarks/depth_errors.py --data OUT [--split test] [--samples 60] [--predicted RUN] [--also TOML]
 
 For the first N samples of a data set's split (e.g. the learning benchmark's, recipes/learn.toml),
 every kind of dofsynth.train.augment alone at probability 1 with the default [augment] ranges
 (`dofsynth eval --depth KIND`), the shipped train-learn setting, and `--depth realistic`, drawn
 with the evaluation seed, and with --predicted the map a depth run predicts (`--depth
-predicted:RUN`: fitted to the clean map's scale by the 5-knot spline): mean, median and 90th
+predicted:RUN`: fitted to the clean map's scale by the 5-knot spline) and with --also the
+errors of a TOML file's [augment] table: mean, median and 90th
 percentile of the per-sample disparity MAE. The DeepLens paper measured 0.116-0.199 for real
 monocular estimators.
 """
@@ -32,6 +33,9 @@ def main() -> None:
     ap.add_argument("--split", default="test")
     ap.add_argument("--samples", type=int, default=60)
     ap.add_argument("--predicted", metavar="RUN", help="also the disparity this depth run predicts")
+    ap.add_argument("--also", metavar="TOML", action="append", default=[],
+                    help="also the errors of this file's [augment] table (e.g. benchmarks/depth-errors-real.toml); "
+                         "may be given more than once")
     args = ap.parse_args()
     predict = depth_predictor(f"predicted:{args.predicted}", "cpu") if args.predicted else None
     samples = []
@@ -44,7 +48,7 @@ def main() -> None:
     d0 = samples[0][0]
     print(f"{len(samples)} samples of {args.data}/{args.split}, {d0.shape[1]}x{d0.shape[0]} px")
     print("| --depth | MAE mean | median | 90th pct |\n|---|---|---|---|")
-    for which in [*DEPTH_KINDS, "train-learn", "realistic"]:
+    for which in [*DEPTH_KINDS, "train-learn", "realistic", *args.also]:
         cfg = depth_corruption(which, AugmentConfig())
         maes = [float(np.abs(corrupt_disparity(d, layers, cfg, np.random.default_rng([12345, i]))[0] - d).mean())
                 for i, (d, layers, _) in enumerate(samples)]

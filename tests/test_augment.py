@@ -210,3 +210,38 @@ def test_realistic_depth_is_as_wrong_as_a_monocular_estimate(smoke_set):
 
     assert len(samples) == 8 and 0.10 <= mae("realistic") <= 0.20
     assert mae("gt") == 0.0 and all(mae(kind) < mae("realistic") for kind in ("morph", "warp", "remap", "fill"))
+
+
+def test_the_real_photo_benchmarks_errors_are_realistic_tripled(smoke_set):
+    """benchmarks/depth-errors-real.toml (the real-photo lens-blur benchmark's depth errors) is
+    `--depth realistic` with every pixel size three times as large and nothing else changed, as
+    its header says; `dofsynth eval --depth FILE` takes it, and it makes the depth more wrong."""
+    import dataclasses
+    from pathlib import Path
+
+    from dofsynth.codecs import decode_depth
+    from dofsynth.io import decode_image
+    from dofsynth.train.evaluate import depth_corruption
+    from dofsynth.train.segments import find_segments, raw_samples
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "depth-errors-real.toml"
+    realistic = depth_corruption("realistic", AugmentConfig())
+    errors = depth_corruption(str(path), AugmentConfig())
+    px = {"morph_kernel", "fill_kernel", "warp_px", "edge_blur_sigma"}  # the sizes in pixels
+    for f in dataclasses.fields(AugmentConfig):
+        mine, theirs = getattr(errors, f.name), getattr(realistic, f.name)
+        if f.name in px:  # (odd kernel sides stay odd)
+            assert tuple(mine) == tuple(3 * v for v in theirs), f.name
+        else:
+            assert mine == theirs, f.name
+
+    samples = []
+    for raw in raw_samples(find_segments(smoke_set, "train"), "train"):
+        cover = decode_image(raw["cover.png"], "cover")
+        samples.append((decode_depth(raw["depth.exr"], "depth"), layers_from_record(json.loads(raw["json"]), cover)))
+
+    def mae(cfg):
+        return np.mean([np.abs(corrupt_disparity(d, lay, cfg, np.random.default_rng([12345, i]))[0] - d).mean()
+                        for i, (d, lay) in enumerate(samples)])
+
+    assert mae(errors) > mae(realistic)
