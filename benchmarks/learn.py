@@ -216,12 +216,10 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
     on realistic depth errors; everyone given the same realistic depth on the test split.
     `only`: just the models whose names hold it (with the classical and all-in-focus rows);
     `depth`: the disparity everyone is given (`dofsynth eval --depth`); `errors`: a TOML file
-    whose [augment] table replaces the config's (the depth errors trained on), given to
-    everyone too unless `depth` names another disparity."""
+    whose [augment] table replaces the config's (the depth errors trained on)."""
     recipe, base = load_recipe(REAL_RECIPE), load(REAL_CONFIG)
     if errors is not None:
         base = replace(base, "augment", **dataclasses.asdict(load(errors).augment))
-        depth = str(errors) if depth == "realistic" else depth
     data = make_data(out, REAL_RECIPE, "data-real")
     d = base.data
     h, w = recipe.frame
@@ -303,19 +301,20 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3, help="with --part real: training seeds per model (default 3)")
     ap.add_argument("--limit", type=int, default=None, help="with --part real: test scenes scored (default all)")
     ap.add_argument("--only", default="", help="with --part real: only the models whose names hold this text")
-    ap.add_argument("--depth", default="realistic",
+    ap.add_argument("--depth", default=None,
                     help="with --part real: the disparity everyone is given (dofsynth eval --depth; default "
-                         "realistic), e.g. predicted:RUN for a depth run's estimates")
+                         "realistic, or the --errors file), e.g. predicted:RUN for a depth run's estimates")
     ap.add_argument("--errors", type=Path, default=None,
                     help="with --part real: a TOML file whose [augment] table is the depth errors the networks "
-                         "train on and everyone is given (default the config's, = realistic), e.g. "
-                         "benchmarks/depth-errors-real.toml")
+                         "train on and, unless --depth says otherwise, everyone is given (default the config's, "
+                         "= realistic), e.g. benchmarks/depth-errors-real.toml")
     ap.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     progress.set_verbosity(quiet=True)  # the training bars; this script prints its own lines
     if args.part == "real":
-        part_real(args.out, list(range(args.seeds)), args.limit, args.only, args.depth, args.errors)
+        depth = args.depth or (str(args.errors) if args.errors else "realistic")
+        part_real(args.out, list(range(args.seeds)), args.limit, args.only, depth, args.errors)
         return
     recipe, base = load_recipe(RECIPE), load(CONFIG)
     data = make_data(args.out)

@@ -189,27 +189,37 @@ def test_the_kinds_of_real_estimates_swap_fill_warp_and_remap():
     assert remapped[20, 20] == 1.0                                  # 1.3 * 0.894 - 0.1 = 1.063: clipped
 
 
-def test_realistic_depth_is_as_wrong_as_a_monocular_estimate(smoke_set):
-    """`--depth realistic` on the real generator's samples: a disparity MAE in 0.10-0.20, as the
-    DeepLens paper measured for real estimators (0.116-0.199); each kind alone stays below it."""
+def _smoke_depths(smoke_set) -> list:
+    """(clean disparity, layers) of every sample of the smoke set (train, then test)."""
     from dofsynth.codecs import decode_depth
     from dofsynth.io import decode_image
     from dofsynth.train.segments import find_segments, raw_samples
-    from dofsynth.train.evaluate import depth_corruption
 
     samples = []
     for split in ("train", "test"):
         for raw in raw_samples(find_segments(smoke_set, split), split):
             cover = decode_image(raw["cover.png"], "cover")
             samples.append((decode_depth(raw["depth.exr"], "depth"), layers_from_record(json.loads(raw["json"]), cover)))
+    return samples
 
-    def mae(which):
-        cfg = depth_corruption(which, AugmentConfig())
-        return np.mean([np.abs(corrupt_disparity(d, lay, cfg, np.random.default_rng([12345, i]))[0] - d).mean()
-                        for i, (d, lay) in enumerate(samples)])
 
-    assert len(samples) == 8 and 0.10 <= mae("realistic") <= 0.20
-    assert mae("gt") == 0.0 and all(mae(kind) < mae("realistic") for kind in ("morph", "warp", "remap", "fill"))
+def _mae(samples, which: str) -> float:
+    """The mean disparity MAE of `dofsynth eval --depth which` on (disparity, layers) samples,
+    drawn with the evaluation seed."""
+    from dofsynth.train.evaluate import depth_corruption
+
+    cfg = depth_corruption(which, AugmentConfig())
+    return float(np.mean([np.abs(corrupt_disparity(d, lay, cfg, np.random.default_rng([12345, i]))[0] - d).mean()
+                          for i, (d, lay) in enumerate(samples)]))
+
+
+def test_realistic_depth_is_as_wrong_as_a_monocular_estimate(smoke_set):
+    """`--depth realistic` on the real generator's samples: a disparity MAE in 0.10-0.20, as the
+    DeepLens paper measured for real estimators (0.116-0.199); each kind alone stays below it."""
+    samples = _smoke_depths(smoke_set)
+    realistic = _mae(samples, "realistic")
+    assert len(samples) == 8 and 0.10 <= realistic <= 0.20
+    assert _mae(samples, "gt") == 0.0 and all(_mae(samples, kind) < realistic for kind in ("morph", "warp", "remap", "fill"))
 
 
 def test_the_real_photo_benchmarks_errors_are_realistic_tripled(smoke_set):
@@ -219,14 +229,11 @@ def test_the_real_photo_benchmarks_errors_are_realistic_tripled(smoke_set):
     import dataclasses
     from pathlib import Path
 
-    from dofsynth.codecs import decode_depth
-    from dofsynth.io import decode_image
     from dofsynth.train.evaluate import depth_corruption
-    from dofsynth.train.segments import find_segments, raw_samples
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "depth-errors-real.toml"
+    path = str(Path(__file__).resolve().parents[1] / "benchmarks" / "depth-errors-real.toml")
     realistic = depth_corruption("realistic", AugmentConfig())
-    errors = depth_corruption(str(path), AugmentConfig())
+    errors = depth_corruption(path, AugmentConfig())
     px = {"morph_kernel", "fill_kernel", "warp_px", "edge_blur_sigma"}  # the sizes in pixels
     for f in dataclasses.fields(AugmentConfig):
         mine, theirs = getattr(errors, f.name), getattr(realistic, f.name)
@@ -234,14 +241,5 @@ def test_the_real_photo_benchmarks_errors_are_realistic_tripled(smoke_set):
             assert tuple(mine) == tuple(3 * v for v in theirs), f.name
         else:
             assert mine == theirs, f.name
-
-    samples = []
-    for raw in raw_samples(find_segments(smoke_set, "train"), "train"):
-        cover = decode_image(raw["cover.png"], "cover")
-        samples.append((decode_depth(raw["depth.exr"], "depth"), layers_from_record(json.loads(raw["json"]), cover)))
-
-    def mae(cfg):
-        return np.mean([np.abs(corrupt_disparity(d, lay, cfg, np.random.default_rng([12345, i]))[0] - d).mean()
-                        for i, (d, lay) in enumerate(samples)])
-
-    assert mae(errors) > mae(realistic)
+    samples = _smoke_depths(smoke_set)
+    assert _mae(samples, path) > _mae(samples, "realistic")
