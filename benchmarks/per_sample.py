@@ -171,7 +171,8 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=int, default=24, help="samples per case and tree (default 24)")
     ap.add_argument("--rounds", type=int, default=3, help="processes per case and tree, interleaved (default 3)")
     ap.add_argument("--warm", type=int, default=4,
-                    help="samples each process renders before it measures (default 4; indices past --samples): a "
+                    help="samples each process renders before it measures (default 4, at least 1: the first is reported "
+                         "as `first`; indices past --samples): a "
                          "worker that has rendered a few has the CoC grid's kernels cached, as the marginal cost "
                          "of a sample in a long job assumes")
     ap.add_argument("--cases", nargs="+", default=["built-in", "real"], choices=["built-in", "real"])
