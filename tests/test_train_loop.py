@@ -742,35 +742,85 @@ def test_render_with_scales_the_near_shift_with_the_photo(monkeypatch):
     assert seen[-1] == (4.0, 3)  # a smaller aperture blurs less; the edges' displacement stays
 
 
-def test_the_edge_weight_covers_every_pixel_an_edges_blur_reaches_and_fades():
-    """`edge_weight` > 0: the pixels within (larger |CoC| + 1 px) chessboard distance of a pair
-    of neighbours whose CoCs differ by 1 px or more, against a brute-force scan; the weight
-    fades from 1 near the edges to 0 where the band ends without a step."""
-    from dofsynth.train.models import edge_weight
-
+def _edge_scene() -> np.ndarray:
+    """A signed disparity with a plate 2.4 px of CoC in front, a step of 1.2 px behind and one of
+    0.2 px (no edge) at coc_px 4, plus noise far below 1 px."""
     g = np.random.default_rng(4)
     signed = np.zeros((40, 50), np.float32) + 0.1
     signed[10:22, 8:30] = 0.6                      # a plate 2.4 px of CoC in front (coc_px 4)
     signed[30:, 35:] = -0.2                        # a step of 1.2 px behind
     signed[:5, 40:] = 0.1 + 0.2 / 4                # a step of 0.2 px: no edge
     signed += g.uniform(-0.01, 0.01, signed.shape).astype(np.float32)  # noise far below 1 px
-    weight = edge_weight(torch.from_numpy(signed)[None, None], 4.0)[0, 0].numpy()
-    got = weight > 0
-    c = signed * 4.0
-    want = np.zeros_like(got)
+    return signed
+
+
+def _band_by_scan(c: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    """Brute force: the pixels within (larger |CoC| + 1 px + margin) chessboard distance of a
+    pixel whose 3 x 3 neighbourhood's CoCs differ by 1 px or more."""
+    want = np.zeros(c.shape, bool)
     H, W = c.shape
     for y in range(H):
         for x in range(W):
             win = c[max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2]
             if win.max() - win.min() >= 1.0:
-                r = int(np.floor(np.abs(win).max() + 1.0))
+                r = int(np.floor(np.abs(win).max() + 1.0 + margin))
                 want[max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1] = True
+    return want
+
+
+def test_the_edge_weight_covers_every_pixel_an_edges_blur_reaches_and_fades():
+    """`edge_weight` > 0: the pixels within (larger |CoC| + 1 px) chessboard distance of a pair
+    of neighbours whose CoCs differ by 1 px or more, against a brute-force scan; the weight
+    fades from 1 near the edges to 0 where the band ends without a step."""
+    from dofsynth.train.models import edge_weight
+
+    signed = _edge_scene()
+    weight = edge_weight(torch.from_numpy(signed)[None, None], 4.0)[0, 0].numpy()
+    got = weight > 0
+    c = signed * 4.0
+    want = _band_by_scan(c)
     assert np.array_equal(got, want)
     assert want.any() and not want.all() and not want[:3, 44:].any()
     # the gate's weight: 1 on the edges of the longest reach, no step anywhere (no seam)
     ramp = max(np.floor(np.abs(c).max() + 1.0), 2.0) / 2  # (the plate's reach / 2)
     assert weight.min() == 0.0 and weight.max() == 1.0 and weight[10, 8:30].min() == 1.0
     assert max(np.abs(np.diff(weight, axis=0)).max(), np.abs(np.diff(weight, axis=1)).max()) <= 1.0 / ramp + 1e-6
+
+
+def test_the_edge_weight_reaches_its_margin_further():
+    """`edge_weight(..., margin)`: every edge reaches `margin` px further (the brute-force band
+    of the grown reach), still fading without a step; margin 0 is the plain band."""
+    from dofsynth.train.models import edge_weight
+
+    signed = _edge_scene()
+    c = signed * 4.0
+    plain = edge_weight(torch.from_numpy(signed)[None, None], 4.0)[0, 0].numpy()
+    wide = edge_weight(torch.from_numpy(signed)[None, None], 4.0, 3.5)[0, 0].numpy()
+    assert np.array_equal(wide > 0, _band_by_scan(c, 3.5))
+    assert (wide > 0).sum() > (plain > 0).sum() and np.all(wide[plain > 0] > 0)
+    assert np.array_equal(edge_weight(torch.from_numpy(signed)[None, None], 4.0, 0.0)[0, 0].numpy(), plain)
+    ramp = max(np.floor(np.abs(c).max() + 1.0 + 3.5), 2.0) / 2
+    assert wide.max() == 1.0 and max(np.abs(np.diff(wide, axis=0)).max(), np.abs(np.diff(wide, axis=1)).max()) <= 1.0 / ramp + 1e-6
+
+
+def test_the_hybrids_gate_margin_is_px_at_the_data_size_scaled_with_the_coc(monkeypatch):
+    """[model] gate_margin: px at the data's size (where coc_px = coc_ref), so a render at twice
+    the CoC scale widens the gate by twice as many px; only with gate = "edges"."""
+    from dofsynth.train import models
+    from dofsynth.train.config import ModelConfig
+
+    seen = []
+    real = models.edge_weight
+    monkeypatch.setattr(models, "edge_weight", lambda s, c, m=0.0: seen.append((c, m)) or real(s, c, m))
+    model = models.HybridNet(ModelConfig(kind="hybrid", kp_width=4, kp_depth=1, gate="edges", gate_margin=3,
+                                         coc_ref=4.0)).eval()
+    image, signed = torch.rand(1, 3, 16, 16), torch.zeros(1, 1, 16, 16)
+    with torch.no_grad():
+        for coc_px in (4.0, 8.0):
+            model(image, signed, sizes=[(16, 16)], signed_hi=signed, coc_px=coc_px, classical=image)
+    assert seen == [(4.0, 3.0), (8.0, 6.0)]
+    with pytest.raises(ValueError, match="model.gate_margin"):
+        tiny_config(model={"kind": "hybrid", "gate_margin": 2})  # no gate to widen
 
 
 def test_a_gated_hybrid_corrects_only_near_the_given_depths_edges(setup):

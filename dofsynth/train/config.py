@@ -101,6 +101,9 @@ class ModelConfig:
     near_shift: int = key(0, lo=0)                          # hybrid: px (at the data's size) by which two more
                                                             # classical renders grow and shrink the given depth's
                                                             # near regions, mixed in per pixel; 0 = none
+    gate_margin: int = key(0, lo=0)                         # gate = "edges": px (at the data's size) the gate
+                                                            # reaches past an edge's blur (as far as the depth's
+                                                            # edges may be off: near_shift); 0 = the blur's reach
 
 
 @dataclass_kw
@@ -185,6 +188,9 @@ def _check(cfg: Config, source: str) -> None:
     if cfg.model.gate != "none" and cfg.model.kind != "hybrid":
         raise error(source, "model.gate", "'none' unless model.kind = 'hybrid' (it gates the hybrid's correction)",
                     cfg.model.gate)
+    if cfg.model.gate_margin and cfg.model.gate != "edges":
+        raise error(source, "model.gate_margin", "0 unless model.gate = 'edges' (it widens that gate)",
+                    cfg.model.gate_margin)
     if cfg.model.near_shift and cfg.model.kind != "hybrid":
         raise error(source, "model.near_shift", "0 unless model.kind = 'hybrid' (the renders it mixes are the hybrid's input)",
                     cfg.model.near_shift)

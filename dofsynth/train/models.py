@@ -267,8 +267,9 @@ class HybridNet(nn.Module):
     L is H area-reduced to the lowest size, so the loss is the same as DeepLensNet's. The other
     arguments are DeepLensNet's; with [model] identity, H is the image where no blur reaches;
     with [model] gate = "edges", the correction is weighted by `edge_weight` of signed_hi, so H
-    is C wherever no depth edge is within the blur's reach: the correction acts only where the
-    single-image render is unreliable, fading out towards the edge of that band. With [model]
+    is C wherever no depth edge is within the blur's reach (plus [model] gate_margin px): the
+    correction acts only where the single-image render is unreliable, fading out towards the
+    edge of that band. With [model]
     near_shift, C is (B, 9, H, W): the render, then the renders from the depth with its near
     regions grown and shrunk (dofsynth.train.classical.classical_stack); the U-Net sees all three
     and the correction adds m_g (C_g - C) + m_s (C_s - C), per-pixel weights of the head, so
@@ -282,6 +283,9 @@ class HybridNet(nn.Module):
         nn.init.zeros_(self.head.weight), nn.init.zeros_(self.head.bias)
         self.identity = cfg.identity
         self.gate = cfg.gate == "edges"
+        # the gate's margin in px per px of CoC scale: [model] gate_margin px at the data's size,
+        # where coc_px = coc_ref (scaled with the CoC at inference, as near_shift is)
+        self.margin_per_coc = cfg.gate_margin / cfg.coc_ref if cfg.gate_margin and cfg.coc_ref > 0 else 0.0
         self.local = cfg.norm != "group"  # each output depends on its neighbourhood only (eval mode)
 
     def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
@@ -295,7 +299,7 @@ class HybridNet(nn.Module):
         sizes = size_chain(tuple(image.shape[-2:]), steps) if sizes is None else sizes
         _check(image, 3, "image"), _check(classical, 3 * (1 + self.alternatives), "classical", image.shape[-2:])
         signed = signed_hi if signed_hi is not None else bilinear(signed_lo, tuple(image.shape[-2:]))
-        weight = edge_weight(signed_hi, coc_px) if self.gate else None
+        weight = edge_weight(signed_hi, coc_px, self.margin_per_coc * coc_px) if self.gate else None
         head = self._correction([image, classical, signed], rows,
                                 None if weight is None else weight > 0)
         base = classical[:, :3]

@@ -111,15 +111,17 @@ def untouched(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
 
 
 @torch.no_grad()
-def edge_weight(signed: torch.Tensor, coc_px: float) -> torch.Tensor:
+def edge_weight(signed: torch.Tensor, coc_px: float, margin: float = 0.0) -> torch.Tensor:
     """(B, 1, H, W) float32 in [0, 1]: how near the pixels lie to a depth edge of `signed` (its
     CoC is signed * coc_px px). A pixel whose CoC differs by 1 px or more from one of its 8
-    neighbours' lies on an edge, which reaches r = the larger |CoC| of that 3 x 3 + 1 px around
-    it; at chessboard distance d the weight is (r - d) / (R / 2), at most 1, R the image's
-    longest reach: 1 near the edges, falling linearly to 0 where their reach ends (no seam)."""
+    neighbours' lies on an edge, which reaches r = the larger |CoC| of that 3 x 3 + 1 px +
+    `margin` px around it; at chessboard distance d the weight is (r - d) / (R / 2), at most 1,
+    R the image's longest reach: 1 near the edges, falling linearly to 0 where their reach ends
+    (no seam)."""
     c = signed.float() * float(coc_px)
     hi, lo = _max_min3(c)
-    reach = torch.where(hi - lo >= 1.0, torch.maximum(hi.abs(), lo.abs()) + 1.0, torch.zeros_like(c))
+    reach = torch.where(hi - lo >= 1.0, torch.maximum(hi.abs(), lo.abs()) + (1.0 + float(margin)),
+                        torch.zeros_like(c))
     spread = _spread_reach(reach, math.ceil(float(reach.max())) if reach.numel() else 0)
     ramp = torch.clamp(reach.amax(dim=(-2, -1), keepdim=True) / 2, min=1.0)
     return torch.clamp(spread / ramp, 0.0, 1.0)
