@@ -4,11 +4,12 @@ in a fresh process (its own peak RSS), with the model as `dofsynth render --mode
 module, whole frames), and the largest difference between the two results.
 
     .venv/bin/python benchmarks/infer.py [--config recipes/train-deeplens.toml] [--threads 2]
-    .venv/bin/python benchmarks/infer.py --config recipes/train-learn-real.toml [--gate] [--near-shift 10]   # the hybrid
+    .venv/bin/python benchmarks/infer.py --config recipes/train-learn-real.toml [--gate] [--near-shift 10] [--gate-margin 10]   # the hybrid
 
 Random weights of the config's model (the paper's networks, or the hybrid: its classical render,
 its U-Net at full resolution, with --gate the edge weight of `[model] gate = "edges"`, with
---near-shift its two more classical renders of `[model] near_shift`) (batch
+--near-shift its two more classical renders of `[model] near_shift`, with --gate-margin its gate
+that much wider) (batch
 normalisation given random statistics, so folding it is exercised); a random photo and a
 portrait's disparity (`portrait_disparity`: a near subject in focus before a receding
 background). Peak RSS is the process's own maximum (VmHWM), model, photo and result included.
@@ -111,8 +112,10 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[1024, 2048])
     ap.add_argument("--gate", action="store_true", help='the hybrid with [model] gate = "edges"')
     ap.add_argument("--near-shift", type=int, default=0, help="the hybrid with [model] near_shift = N (px)")
+    ap.add_argument("--gate-margin", type=int, default=0, help="with --gate: [model] gate_margin = N (px)")
     args = ap.parse_args(argv)
-    model = {**({"gate": "edges"} if args.gate else {}), **({"near_shift": args.near_shift} if args.near_shift else {})}
+    model = {**({"gate": "edges"} if args.gate else {}), **({"near_shift": args.near_shift} if args.near_shift else {}),
+             **({"gate_margin": args.gate_margin} if args.gate_margin else {})}
     print("| size | model | CPU s | wall s | peak MiB | max difference |\n|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for side in args.sizes:
