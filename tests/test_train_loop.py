@@ -819,6 +819,8 @@ def test_the_hybrids_gate_margin_is_px_at_the_data_size_scaled_with_the_coc(monk
         for coc_px in (4.0, 8.0):
             model(image, signed, sizes=[(16, 16)], signed_hi=signed, coc_px=coc_px, classical=image)
     assert seen == [(4.0, 3.0), (8.0, 6.0)]
+    with pytest.raises(ValueError, match="coc_ref"):  # not silently the plain gate
+        models.HybridNet(ModelConfig(kind="hybrid", gate="edges", gate_margin=3))
     with pytest.raises(ValueError, match="model.gate_margin"):
         tiny_config(model={"kind": "hybrid", "gate_margin": 2})  # no gate to widen
 

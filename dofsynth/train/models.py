@@ -285,7 +285,9 @@ class HybridNet(nn.Module):
         self.gate = cfg.gate == "edges"
         # the gate's margin in px per px of CoC scale: [model] gate_margin px at the data's size,
         # where coc_px = coc_ref (scaled with the CoC at inference, as near_shift is)
-        self.margin_per_coc = cfg.gate_margin / cfg.coc_ref if cfg.gate_margin and cfg.coc_ref > 0 else 0.0
+        if cfg.gate_margin and cfg.coc_ref <= 0:
+            raise ValueError("[model] gate_margin needs model.coc_ref (> 0: training fills it in from the data)")
+        self.margin_per_coc = cfg.gate_margin / cfg.coc_ref if cfg.gate_margin else 0.0
         self.local = cfg.norm != "group"  # each output depends on its neighbourhood only (eval mode)
 
     def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
