@@ -192,7 +192,8 @@ REAL_CONFIG = ROOT / "recipes" / "train-learn-real.toml"
 DEEPLENS = {"kind": "deeplens", "feat_channels": 8, "kp_width": 16, "kp_depth": 3,
             "up_width": 16}
 LONG = 1200  # steps of the longer hybrid runs
-LONGER = 2400  # steps of the longest gated one
+LONGER = 2400  # steps of the longest gated one, and of the longest paper networks
+PAPER_LR = 2e-3  # peak learning rate of the paper networks' longest runs
 NEAR_SHIFT = 10  # px: [model] near_shift of the hybrid given grown and shrunk renders
 WIDE_SHIFT = 30  # px: the same for errors three times as wide (benchmarks/depth-errors-real.toml)
 # with --depth predicted:RUN, the share of training items given RUN's estimates (the rest: the realistic
@@ -241,6 +242,11 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
              # and trained on the clean depth (tested, as all, on the realistic errors)
              **{f"deeplens, c = {4 * fc}": replace(paper, "model", feat_channels=fc) for fc in (2, 4)},
              "deeplens, trained on clean depth": replace(paper, "augment", enabled=False),
+             # its feature convolutions started as a cascade of box blurs ([model] feat_init), not at random
+             "deeplens, features started as blurs": replace(paper, "model", feat_init="blur"),
+             # the same six times as long, at the peak learning rate of recipes/train-learn.toml (2e-3)
+             f"deeplens, features started as blurs, {LONGER} steps": steps(replace(
+                 replace(paper, "model", feat_init="blur"), "train", lr=PAPER_LR, min_lr=PAPER_LR / 10), LONGER),
              "hybrid, color = linear": replace(base, "data", color="linear"),
              f"hybrid, {LONG} steps": steps(base, LONG),
              **{f"hybrid gated to the edge bands, {n} steps": steps(gated, n) for n in (LONG, LONGER)},

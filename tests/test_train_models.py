@@ -54,6 +54,9 @@ VARIANTS = {
     "official": ModelConfig(feat_channels=4, kp_width=8, kp_depth=2, up_width=8, up_depth=2, features="joint",
                             raw_feature=True, kernel="blur", norm="batch"),
     "group-norm": ModelConfig(feat_channels=4, kp_width=8, kp_depth=1, up_width=8, norm="group"),
+    "blur-init": ModelConfig(feat_channels=4, kp_width=8, kp_depth=1, up_width=8, feat_init="blur"),
+    "blur-init joint": ModelConfig(feat_channels=4, kp_width=8, kp_depth=1, up_width=8, feat_init="blur",
+                                   features="joint"),
 }
 
 
@@ -68,6 +71,28 @@ def test_gradients_reach_every_parameter(variant):
     loss.backward()
     for name, p in net.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0, name
+
+
+@pytest.mark.parametrize("joint", [False, True])
+def test_blur_init_features_are_blurs_of_their_own_colour(joint):
+    """feat_init = "blur": every feature starts as a normalised blur of its colour alone, so a flat
+    image gives flat features equal to it, an impulse keeps its mass, each layer's map k blurs
+    more than map k - 1, and the deepest, widest map spreads it with the cascade's std
+    sqrt(2/3 x sum d^2) px (box means of 3 taps, d apart, have variance 2 d^2 / 3 per axis)."""
+    feats = ChannelFeatures(4, (1, 2, 4), joint=joint, init="blur")
+    flat = torch.tensor([0.2, 0.5, 0.9]).view(1, 3, 1, 1).expand(1, 3, 9, 11)
+    assert torch.allclose(feats(flat), flat.unsqueeze(2).expand(1, 3, 12, 9, 11), atol=1e-6)
+    x = torch.zeros(1, 3, 41, 41)
+    x[0, 1, 20, 20] = 1.0  # an impulse in green only
+    f = feats(x).detach()[0]
+    assert f[0].abs().max() == 0 and f[2].abs().max() == 0          # red and blue untouched
+    assert torch.allclose(f[1].sum(dim=(-2, -1)), torch.ones(12), atol=1e-5)
+    rows = torch.arange(41.0).view(41, 1) - 20
+    std = ((rows**2 * f[1]).sum(dim=(-2, -1))).sqrt()               # per feature, px
+    assert torch.all(std.view(3, 4).diff(dim=1) > 0)                # within a layer: t grows
+    assert std[-1] == pytest.approx(math.sqrt(2 / 3 * (1 + 4 + 16)), rel=1e-4)
+    with pytest.raises(ValueError, match="init"):
+        ChannelFeatures(4, (1, 2), init="gauss")
 
 
 def test_joint_features_with_the_raw_image_and_blur_kernels():

@@ -88,6 +88,8 @@ class ModelConfig:
     kp_depth: int = key(3, lo=0)                            # the correction's U-Net); its number of x2 downsamplings
     features: str = key("channel", choices=("channel", "joint"))  # per-colour conv stack (paper) or one RGB stack
     raw_feature: bool = key(False)                          # the image itself is one of the c features (+1)
+    feat_init: str = key("random", choices=("random", "blur"))  # the feature convs' start: PyTorch's random
+    #                                                       # init, or a cascade of box blurs of the image
     kernel: str = key("free", choices=("free", "blur"))      # "blur": kernels >= 0 summing to 1 (softmax)
     norm: str = key("batch", choices=("none", "batch", "group"))  # after each conv of the predictor / upsampler (measured best)
     up_width: int = key(16, lo=1)                           # guided upsampler feature width

@@ -66,6 +66,7 @@ def bilinear(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
 
 NORMS = ("none", "batch", "group")
 KERNELS = ("free", "blur")
+FEAT_INITS = ("random", "blur")
 
 
 def conv(cin: int, cout: int, dilation: int = 1, stride: int = 1) -> nn.Conv2d:
@@ -94,13 +95,35 @@ class ChannelFeatures(nn.Module):
     to colour k % 3. raw=True: the colour channel itself is feature 0."""
 
     def __init__(self, channels: int = 8, dilations: tuple[int, ...] = (1, 2, 4, 8), *,
-                 joint: bool = False, raw: bool = False):
+                 joint: bool = False, raw: bool = False, init: str = "random"):
         super().__init__()
         n = 3 if joint else 1
         cins = [n] + [n * channels] * (len(dilations) - 1)
         self.layers = nn.ModuleList(conv(ci, n * channels, d) for ci, d in zip(cins, dilations))
         self.joint, self.raw = joint, raw
         self.out_channels = channels * len(dilations) + int(raw)
+        if init == "blur":
+            self._blur_init(channels, n)
+        elif init != "random":
+            raise ValueError(f"init must be one of {FEAT_INITS}, got {init!r}")
+
+    @torch.no_grad()
+    def _blur_init(self, channels: int, n: int) -> None:
+        """Each map starts as a cascade of blurs of its colour: map o of a layer is
+        (1 - t) x (its source) + t x (the 3x3 box mean of its source at the layer's dilation),
+        t = (o // n + 1) / channels, the source being the same map of the layer before (the colour
+        itself in the first). So the c features start as the image blurred from a little to
+        std ~ sqrt(2/3 sum d^2) px (7.5 px for dilations 1-8), all >= 0 (ReLU keeps them)."""
+        for layer in self.layers:
+            w = torch.zeros_like(layer.weight)          # (out, in, 3, 3)
+            cout, cin = w.shape[:2]
+            for o in range(cout):
+                t = (o // n + 1) / channels
+                src = o if cin == cout else o % cin
+                w[o, src] = t / 9
+                w[o, src, 1, 1] += 1 - t
+            layer.weight.copy_(w)
+            layer.bias.zero_()
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         b, n, h, w = image.shape
@@ -161,11 +184,11 @@ class LensBlurNet(nn.Module):
 
     def __init__(self, feat_channels: int = 8, dilations: tuple[int, ...] = (1, 2, 4, 8),
                  kp_width: int = 32, kp_depth: int = 3, *, joint: bool = False, raw: bool = False,
-                 kernel: str = "free", norm: str = "none"):
+                 kernel: str = "free", norm: str = "none", feat_init: str = "random"):
         super().__init__()
         if kernel not in KERNELS:
             raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
-        self.features = ChannelFeatures(feat_channels, dilations, joint=joint, raw=raw)
+        self.features = ChannelFeatures(feat_channels, dilations, joint=joint, raw=raw, init=feat_init)
         self.kernel = KernelPredictor(self.features.out_channels, kp_width, kp_depth, norm)
         self.blur = kernel == "blur"
 
@@ -229,7 +252,7 @@ class DeepLensNet(nn.Module):
         super().__init__()
         self.lens = LensBlurNet(cfg.feat_channels, tuple(cfg.feat_dilations), cfg.kp_width, cfg.kp_depth,
                                 joint=cfg.features == "joint", raw=cfg.raw_feature, kernel=cfg.kernel,
-                                norm=cfg.norm)
+                                norm=cfg.norm, feat_init=cfg.feat_init)
         self.up = GuidedUpsampler(cfg.up_width, cfg.up_depth, cfg.norm)
         self.identity = cfg.identity
 
