@@ -109,17 +109,13 @@ class ChannelFeatures(nn.Module):
 
     @torch.no_grad()
     def _blur_init(self, channels: int, n: int) -> None:
-        """Each map starts as a cascade of blurs of its colour: map o of a layer is
-        (1 - t) x (its source) + t x (the 3x3 box mean of its source at the layer's dilation),
-        t = (o // n + 1) / channels, the source being the same map of the layer before (the colour
-        itself in the first). So the c features start as the image blurred from a little to
-        std ~ sqrt(2/3 sum d^2) px (7.5 px for dilations 1-8), all >= 0 (ReLU keeps them)."""
+        """Map o of a layer starts as (1 - t) x its source + t x the 3x3 box mean of it at the
+        layer's dilation, t = (o // n + 1) / channels, its source the same map of the layer before
+        (its colour in the first): blurs of the image up to a std of sqrt(2/3 sum d^2) px, >= 0."""
         for layer in self.layers:
             w = torch.zeros_like(layer.weight)          # (out, in, 3, 3)
-            cout, cin = w.shape[:2]
-            for o in range(cout):
-                t = (o // n + 1) / channels
-                src = o if cin == cout else o % cin
+            for o in range(w.shape[0]):
+                t, src = (o // n + 1) / channels, o if w.shape[1] == w.shape[0] else o % w.shape[1]
                 w[o, src] = t / 9
                 w[o, src, 1, 1] += 1 - t
             layer.weight.copy_(w)
