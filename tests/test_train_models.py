@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from dofsynth.train.config import ModelConfig
+from dofsynth.train.config import ModelConfig, from_dict
 from dofsynth.train.loss import deeplens_loss, normalized_loss
 from dofsynth.train.models import (ChannelFeatures, DeepLensNet, GuidedUpsampler, KernelPredictor,
                                    LensBlurNet, size_chain)
@@ -93,6 +93,8 @@ def test_blur_init_features_are_blurs_of_their_own_colour(joint):
     assert std[-1] == pytest.approx(math.sqrt(2 / 3 * (1 + 4 + 16)), rel=1e-4)
     with pytest.raises(ValueError, match="init"):
         ChannelFeatures(4, (1, 2), init="gauss")
+    with pytest.raises(ValueError, match="model.feat_init"):  # the hybrid has no features to start
+        from_dict({"model": {"kind": "hybrid", "feat_init": "blur"}})
 
 
 def test_joint_features_with_the_raw_image_and_blur_kernels():

@@ -193,6 +193,9 @@ def _check(cfg: Config, source: str) -> None:
     if cfg.model.gate_margin and cfg.model.gate != "edges":
         raise error(source, "model.gate_margin", "0 unless model.gate = 'edges' (it widens that gate)",
                     cfg.model.gate_margin)
+    if cfg.model.feat_init != "random" and cfg.model.kind != "deeplens":
+        raise error(source, "model.feat_init", "'random' unless model.kind = 'deeplens' (the hybrid has no feature stack)",
+                    cfg.model.feat_init)
     if cfg.model.near_shift and cfg.model.kind != "hybrid":
         raise error(source, "model.near_shift", "0 unless model.kind = 'hybrid' (the renders it mixes are the hybrid's input)",
                     cfg.model.near_shift)
