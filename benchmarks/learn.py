@@ -232,6 +232,7 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
           f"lr {base.train.lr:g}, depth errors of {errors or '[augment] (= eval --depth realistic)'}, seeds {seeds}; "
           f"test: {'all' if limit is None else limit} scenes, depth {depth}, evaluation seed 12345")
     paper = replace(base, "model", **DEEPLENS)
+    blur_started = replace(paper, "model", feat_init="blur")  # its features started as blurs, not at random
     gated = replace(base, "model", gate="edges")
 
     def steps(cfg, n: int):
@@ -242,11 +243,11 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
              # and trained on the clean depth (tested, as all, on the realistic errors)
              **{f"deeplens, c = {4 * fc}": replace(paper, "model", feat_channels=fc) for fc in (2, 4)},
              "deeplens, trained on clean depth": replace(paper, "augment", enabled=False),
-             # its feature convolutions started as a cascade of box blurs ([model] feat_init), not at random
-             "deeplens, features started as blurs": replace(paper, "model", feat_init="blur"),
+             # its feature convolutions started as a cascade of box blurs ([model] feat_init)
+             "deeplens, features started as blurs": blur_started,
              # the same six times as long, at the peak learning rate of recipes/train-learn.toml (2e-3)
-             f"deeplens, features started as blurs, {LONGER} steps": steps(replace(
-                 replace(paper, "model", feat_init="blur"), "train", lr=PAPER_LR, min_lr=PAPER_LR / 10), LONGER),
+             f"deeplens, features started as blurs, {LONGER} steps":
+                 steps(replace(blur_started, "train", lr=PAPER_LR, min_lr=PAPER_LR / 10), LONGER),
              "hybrid, color = linear": replace(base, "data", color="linear"),
              f"hybrid, {LONG} steps": steps(base, LONG),
              **{f"hybrid gated to the edge bands, {n} steps": steps(gated, n) for n in (LONG, LONGER)},

@@ -115,7 +115,7 @@ class ChannelFeatures(nn.Module):
         for layer in self.layers:
             w = torch.zeros_like(layer.weight)          # (out, in, 3, 3)
             for o in range(w.shape[0]):
-                t, src = (o // n + 1) / channels, o if w.shape[1] == w.shape[0] else o % w.shape[1]
+                t, src = (o // n + 1) / channels, o % w.shape[1]  # (w.shape[1]: n, or every map)
                 w[o, src] = t / 9
                 w[o, src, 1, 1] += 1 - t
             layer.weight.copy_(w)
@@ -288,11 +288,11 @@ class HybridNet(nn.Module):
     with [model] gate = "edges", the correction is weighted by `edge_weight` of signed_hi, so H
     is C wherever no depth edge is within the blur's reach (plus [model] gate_margin px): the
     correction acts only where the single-image render is unreliable, fading out towards the
-    edge of that band. With [model]
-    near_shift, C is (B, 9, H, W): the render, then the renders from the depth with its near
-    regions grown and shrunk (dofsynth.train.classical.classical_stack); the U-Net sees all three
-    and the correction adds m_g (C_g - C) + m_s (C_s - C), per-pixel weights of the head, so
-    moving a blurred edge to where the image says it is, is a choice, not a synthesis."""
+    edge of that band. With [model] near_shift, C is (B, 9, H, W): the render, then the renders
+    from the depth with its near regions grown and shrunk
+    (dofsynth.train.classical.classical_stack); the U-Net sees all three and the correction adds
+    m_g (C_g - C) + m_s (C_s - C), per-pixel weights of the head, so moving a blurred edge to
+    where the image says it is, is a choice, not a synthesis."""
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
