@@ -1,6 +1,7 @@
 """DeepLens networks and loss: shapes, gradient flow, the loss by hand, a tiny model overfits."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -95,6 +96,65 @@ def test_blur_init_features_are_blurs_of_their_own_colour(joint):
         ChannelFeatures(4, (1, 2), init="gauss")
     with pytest.raises(ValueError, match="model.feat_init"):  # the hybrid has no features to start
         from_dict({"model": {"kind": "hybrid", "feat_init": "blur"}})
+
+
+def _disc_blur(image: np.ndarray, radius: float) -> np.ndarray:
+    """(H, W, 3) float32 image blurred by the anti-aliased disc of `radius` px (edges replicated)."""
+    import cv2
+
+    from dofsynth.optics.aperture import Disk
+    from dofsynth.optics.kernel import kernel
+    return image if radius == 0 else cv2.filter2D(image, -1, kernel(Disk(), radius), borderType=cv2.BORDER_REPLICATE)
+
+
+def test_kernel_prior_starts_the_lens_blur_as_the_disc_blur_the_depth_asks_for(shared_assets):
+    """[model] kernel_prior = "discs": the untrained lens-blur module on a photo is the disc blur of
+    radius |s| coc_ref / 2**levels px wherever s is constant (within 36 dB; the photo is 15-19 dB
+    from those blurs), for either sign of s, between knots and with s beyond [-1, 1] clamped; s = 0
+    gives the photo itself. Training reaches the table, and the predictor's head once it moves."""
+    import cv2
+
+    cfg = from_dict({"model": {**dataclasses.asdict(TINY), "feat_channels": 8, "feat_dilations": [1, 2, 4, 8],
+                               "feat_init": "blur", "kernel_prior": "discs", "coc_ref": 24.0}})
+    net = DeepLensNet(cfg.model, levels=1).eval()                   # 12 px of radius per unit of s
+    bgr = cv2.imread(str(shared_assets / "bg" / "kodak_kodim08.png"))
+    photo = cv2.resize(bgr, (192, 128), interpolation=cv2.INTER_AREA)[:, :, ::-1].astype(np.float32) / 255
+    x = torch.from_numpy(photo.transpose(2, 0, 1).copy())[None]
+
+    def psnr(a, b, m=16):  # away from the frame's edge and from the depth step (columns 80-112)
+        a, b = a[m:-m, m:-m], b[m:-m, m:-m]
+        return 10 * math.log10(1 / float(np.mean((a - b) ** 2)))
+
+    for left, right in [(0.0, -1.0), (0.5, 0.37), (-0.25, 1.6)]:
+        signed = torch.full((1, 1, 128, 192), left)
+        signed[..., 96:] = right
+        with torch.no_grad():
+            lens = net.lens(x, signed)[0].numpy().transpose(1, 2, 0)
+        for value, part in [(left, np.s_[:, :80]), (right, np.s_[:, 112:])]:
+            want = _disc_blur(photo, 12 * min(abs(value), 1.0))
+            if value == 0:
+                assert np.abs(lens[part] - photo[part])[16:-16, 16:-16].max() < 2e-3
+            else:
+                assert psnr(lens[part], want[part]) > 36, (value, psnr(lens[part], want[part]))
+                assert psnr(photo[part], want[part]) < 30   # (the blur is not the photo)
+    net.train()
+    low, high = net(x[..., :64, :64], torch.rand(1, 1, 32, 32) * 2 - 1, 1)
+    deeplens_loss(low, high, torch.rand_like(low), torch.rand_like(high))[0].backward()
+    assert net.lens.prior.table.grad.abs().sum() > 0 and net.lens.kernel.head.weight.grad.abs().sum() > 0
+    assert net.lens.kernel.head.weight.abs().max() == 0            # (started at zero)
+
+
+def test_kernel_prior_is_refused_where_it_cannot_be_fitted():
+    for model in [{"kernel_prior": "discs"},                                   # random features
+                  {"kernel_prior": "discs", "feat_init": "blur", "kernel": "blur"},
+                  {"kernel_prior": "discs", "kind": "hybrid"}]:
+        with pytest.raises(ValueError, match="model.kernel_prior"):
+            from_dict({"model": model})
+    cfg = from_dict({"model": {"kernel_prior": "discs", "feat_init": "blur"}})   # coc_ref not resolved
+    with pytest.raises(ValueError, match="coc_ref"):
+        DeepLensNet(cfg.model, levels=1)
+    with pytest.raises(ValueError, match="levels"):                            # nor the lens blur's size
+        DeepLensNet(from_dict({"model": {**cfg.to_dict()["model"], "coc_ref": 8.0}}).model)
 
 
 def test_joint_features_with_the_raw_image_and_blur_kernels():

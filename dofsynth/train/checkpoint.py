@@ -123,7 +123,7 @@ def build_model(cfg: Config) -> DeepLensNet | HybridNet | DepthNet:
     """The untrained network of the config's [train] task (and [model] kind)."""
     if cfg.train.task == "depth":
         return DepthNet(cfg.depth)
-    return HybridNet(cfg.model) if cfg.model.kind == "hybrid" else DeepLensNet(cfg.model)
+    return HybridNet(cfg.model) if cfg.model.kind == "hybrid" else DeepLensNet(cfg.model, cfg.data.levels)
 
 
 def weights_path(run: str | Path) -> Path:

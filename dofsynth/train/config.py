@@ -91,6 +91,8 @@ class ModelConfig:
     feat_init: str = key("random", choices=("random", "blur"))  # the feature convs' start: PyTorch's random
     #                                                       # init, or a cascade of box blurs of the image
     kernel: str = key("free", choices=("free", "blur"))      # "blur": kernels >= 0 summing to 1 (softmax)
+    kernel_prior: str = key("none", choices=("none", "discs"))  # "discs": the kernel adds a learned table over
+    #                                                       # s started as disc blurs of radius |s| coc_ref / 2**levels
     norm: str = key("batch", choices=("none", "batch", "group"))  # after each conv of the predictor / upsampler (measured best)
     up_width: int = key(16, lo=1)                           # guided upsampler feature width
     up_depth: int = key(0, lo=0)                            # U-Net levels of its low-res branch (0: two convs)
@@ -196,6 +198,11 @@ def _check(cfg: Config, source: str) -> None:
     if cfg.model.feat_init != "random" and cfg.model.kind != "deeplens":
         raise error(source, "model.feat_init", "'random' unless model.kind = 'deeplens' (the hybrid has no feature stack)",
                     cfg.model.feat_init)
+    m = cfg.model
+    if m.kernel_prior != "none" and (m.kind, m.feat_init, m.kernel) != ("deeplens", "blur", "free"):
+        raise error(source, "model.kernel_prior", "'none' unless model.kind = 'deeplens', feat_init = 'blur' and "
+                    "kernel = 'free' (the table is fitted to the blur-started features, and added to free kernels)",
+                    m.kernel_prior)
     if cfg.model.near_shift and cfg.model.kind != "hybrid":
         raise error(source, "model.near_shift", "0 unless model.kind = 'hybrid' (the renders it mixes are the hybrid's input)",
                     cfg.model.near_shift)

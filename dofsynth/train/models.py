@@ -14,18 +14,17 @@ LensBlurNet (Wang et al. 2018, Sec. 4.2):
       turn (the official code). raw_feature = true puts A_i itself first among the c features.
   K = KernelPredictor(A, s): a U-Net gives a per-pixel kernel of c weights (B, c, H, W);
       [model] kernel = "free" leaves them as they are, "blur" makes them non-negative with
-      sum 1 (a softmax), so L is a per-pixel mix of the features, like a blur.
+      sum 1 (a softmax), so L is a per-pixel mix of the features, like a blur. [model]
+      kernel_prior = "discs" adds a learned table T(s) started as disc blurs (kernel_table).
   L_i = sum_j K_j * F_ij: the lens-blurred image (B, 3, H, W).
 
-GuidedUpsampler (Sec. 4.3), one x2 step with weights shared across steps:
-  features of the low-res (A, L, s), bilinearly upsampled, and features of the high-res A
-  predict two weight maps; M_L = sigmoid(.), M_A = 1 - M_L (a convex blend, so in-focus pixels
-  can keep the sharp image exactly): H = M_A * A + M_L * upsample(L). [model] up_depth > 0
-  makes its low-res branch a U-Net of that many levels (the official network's size).
-[model] norm = "batch" or "group" adds that normalisation after every convolution of the
-kernel predictor and the upsampler (never in the features, which stay image filters).
-  Applied recurrently from the low resolution to any size: the size chain halves the target
-  size (rounding up) `steps` times, so non-power-of-two sizes are exact at every step.
+GuidedUpsampler (Sec. 4.3), one x2 step with weights shared across steps, applied from the low
+resolution to any size (the size chain halves it, rounding up, so every step is exact):
+  features of the low-res (A, L, s), bilinearly upsampled, and of the high-res A give
+  M_L = sigmoid(.), M_A = 1 - M_L (a convex blend, so in-focus pixels can keep the sharp image
+  exactly): H = M_A * A + M_L * upsample(L). [model] up_depth > 0 makes its low-res branch a
+  U-Net of that many levels (the official network's size). [model] norm = "batch" or "group"
+  follows every conv of the kernel predictor and the upsampler (never the features).
 """
 from __future__ import annotations
 
@@ -35,6 +34,7 @@ from torch import nn
 
 from dofsynth.optics.coc import coc_radius
 from dofsynth.train.config import ModelConfig
+from dofsynth.train.kernel_table import KernelTable
 from dofsynth.train.reach import edge_weight, untouched
 
 
@@ -176,22 +176,27 @@ class UNet(nn.Module):
 
 
 class LensBlurNet(nn.Module):
-    """(B, 3, h, w) low-res image, (B, 1, h, w) signed disparity -> (B, 3, h, w) blurred L."""
+    """(B, 3, h, w) low-res image, (B, 1, h, w) signed disparity -> (B, 3, h, w) blurred L.
+    prior_px: with [model] kernel_prior = "discs", the px of disc radius per unit of s."""
 
     def __init__(self, feat_channels: int = 8, dilations: tuple[int, ...] = (1, 2, 4, 8),
                  kp_width: int = 32, kp_depth: int = 3, *, joint: bool = False, raw: bool = False,
-                 kernel: str = "free", norm: str = "none", feat_init: str = "random"):
+                 kernel: str = "free", norm: str = "none", feat_init: str = "random", prior_px: float | None = None):
         super().__init__()
         if kernel not in KERNELS:
             raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
         self.features = ChannelFeatures(feat_channels, dilations, joint=joint, raw=raw, init=feat_init)
         self.kernel = KernelPredictor(self.features.out_channels, kp_width, kp_depth, norm)
         self.blur = kernel == "blur"
+        self.prior = None if prior_px is None else KernelTable(self.features, prior_px)
+        if self.prior is not None:  # the untrained kernel is the table's
+            nn.init.zeros_(self.kernel.head.weight), nn.init.zeros_(self.kernel.head.bias)
 
     def forward(self, image: torch.Tensor, signed: torch.Tensor) -> torch.Tensor:
         _check(image, 3, "image"), _check(signed, 1, "signed", image.shape[-2:])
         feats = self.features(image)          # (B, 3, c, h, w)
         k = self.kernel(image, signed)        # (B, c, h, w)
+        k = k if self.prior is None else k + self.prior(signed)
         if self.blur:
             k = torch.softmax(k.float(), dim=1).to(feats.dtype)
         return (feats * k.unsqueeze(1)).sum(dim=2)
@@ -233,22 +238,21 @@ HIGH_REACH = 3  # rows of the high-res image one output row of the upsampler dep
 
 
 class DeepLensNet(nn.Module):
-    """Both networks: `forward(image, signed_lo, steps)` -> (L, H).
-
-    image: (B, 3, H, W) high-res all-in-focus image. signed_lo: (B, 1, h, w) signed disparity at
-    the lowest size of `size_chain((H, W), steps)`, or of `sizes` (lowest to (H, W)) if given. image_lo: optional (B, 3, h, w) low-res image
-    (else area-downsampled here). Returns L (B, 3, h, w), the lens blur at low resolution, and
-    H (B, 3, H, W) after `steps` guided x2 upsamplings. rows: the upsamplings' high-res part in
-    bands of that many rows (inference at large sizes; `GuidedUpsampler.forward`). signed_hi
+    """Both networks: `forward(image, signed_lo, steps)` -> (L, H). image: (B, 3, H, W) high-res
+    all-in-focus image. signed_lo: (B, 1, h, w) signed disparity at the lowest size of
+    `size_chain((H, W), steps)`, or of `sizes` (lowest to (H, W)) if given. image_lo: optional
+    (B, 3, h, w) low-res image (else area-downsampled here). Returns L (B, 3, h, w), the lens blur
+    at low resolution, and H (B, 3, H, W) after `steps` guided x2 upsamplings. rows: the
+    upsamplings' high-res part in bands of that many rows (`GuidedUpsampler.forward`). signed_hi
     (B, 1, H, W) and coc_px (px of CoC per unit of signed disparity at (H, W)): with [model]
-    identity, H is the image itself wherever no blur reaches (`untouched`), by construction.
-    """
+    identity, H is the image itself wherever no blur reaches (`untouched`), by construction."""
 
-    def __init__(self, cfg: ModelConfig):
+    def __init__(self, cfg: ModelConfig, levels: int | None = None):  # [data] levels, for kernel_prior's px
         super().__init__()
+        prior_px = (0.0 if levels is None else cfg.coc_ref / 2**levels) if cfg.kernel_prior == "discs" else None
         self.lens = LensBlurNet(cfg.feat_channels, tuple(cfg.feat_dilations), cfg.kp_width, cfg.kp_depth,
                                 joint=cfg.features == "joint", raw=cfg.raw_feature, kernel=cfg.kernel,
-                                norm=cfg.norm, feat_init=cfg.feat_init)
+                                norm=cfg.norm, feat_init=cfg.feat_init, prior_px=prior_px)
         self.up = GuidedUpsampler(cfg.up_width, cfg.up_depth, cfg.norm)
         self.identity = cfg.identity
 
@@ -278,21 +282,17 @@ class DeepLensNet(nn.Module):
 
 
 class HybridNet(nn.Module):
-    """[model] kind = "hybrid" (in the spirit of BokehMe): `forward(image, signed_lo, steps,
-    classical=C)` -> (L, H) with H = C + U(image, C, signed_hi), C the classical renderer's image
-    from the same (possibly wrong) disparity, and U a U-Net ([model] kp_width, kp_depth) whose
-    last layer starts at zero, so the untrained model *is* the classical renderer and training
-    only learns where to correct it (depth edges, wrong depth, what a blurred foreground hides).
-    L is H area-reduced to the lowest size, so the loss is the same as DeepLensNet's. The other
-    arguments are DeepLensNet's; with [model] identity, H is the image where no blur reaches;
-    with [model] gate = "edges", the correction is weighted by `edge_weight` of signed_hi, so H
-    is C wherever no depth edge is within the blur's reach (plus [model] gate_margin px): the
-    correction acts only where the single-image render is unreliable, fading out towards the
-    edge of that band. With [model] near_shift, C is (B, 9, H, W): the render, then the renders
-    from the depth with its near regions grown and shrunk
-    (dofsynth.train.classical.classical_stack); the U-Net sees all three and the correction adds
-    m_g (C_g - C) + m_s (C_s - C), per-pixel weights of the head, so moving a blurred edge to
-    where the image says it is, is a choice, not a synthesis."""
+    """[model] kind = "hybrid" (in the spirit of BokehMe): `forward(image, signed_lo, steps, classical=C)`
+    -> (L, H) with H = C + U(image, C, signed_hi), C the classical render from the same (possibly wrong)
+    disparity and U a U-Net ([model] kp_width, kp_depth) whose last layer starts at zero: the untrained
+    model *is* the classical renderer, and training learns where to correct it (depth edges, wrong
+    depth, what a blurred foreground hides). L is H area-reduced to the lowest size (the same loss as
+    DeepLensNet's), whose arguments it shares; [model] identity: H is the image where no blur reaches.
+    [model] gate = "edges": the correction is weighted by `edge_weight` of signed_hi, so H is C where no
+    depth edge is within the blur's reach (plus gate_margin px), fading out at that band's edge.
+    [model] near_shift: C is (B, 9, H, W), the render and the renders from the depth with its near
+    regions grown and shrunk (classical_stack); the correction adds m_g (C_g - C) + m_s (C_s - C),
+    per-pixel weights of the head, so moving a blurred edge to where the image says it is, is a choice."""
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
