@@ -65,6 +65,7 @@ from dofsynth.train.evaluate import evaluate_run
 from dofsynth.train.loop import train
 from dofsynth.train import checkpoint
 from dofsynth.train.checkpoint import build_model
+from dofsynth.train.data import resolve
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "learn.toml"
@@ -108,7 +109,7 @@ def run(name: str, cfg, data: Path, out: Path) -> Path:
     """Train `cfg` into OUT/runs/<run_key> (reused when finished: the same config under two
     names trains once); returns the folder."""
     folder = out / "runs" / run_key(cfg)
-    params = f"{sum(p.numel() for p in build_model(cfg).parameters()):,} parameters"
+    params = f"{sum(p.numel() for p in build_model(resolve(cfg, data)).parameters()):,} parameters"
     if (folder / "ckpt.pt").is_file() and checkpoint.load(folder / "ckpt.pt")["step"] >= cfg.train.max_steps:
         print(f"  {name!r}: {cfg.train.max_steps} steps, trained before ({params}; {folder})", flush=True)
         return folder
@@ -233,6 +234,8 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
           f"test: {'all' if limit is None else limit} scenes, depth {depth}, evaluation seed 12345")
     paper = replace(base, "model", **DEEPLENS)
     blur_started = replace(paper, "model", feat_init="blur")  # its features started as blurs, not at random
+    disc_started = replace(blur_started, "model", kernel_prior="discs")  # and its kernels as disc blurs of s
+    longest = dict(lr=PAPER_LR, min_lr=PAPER_LR / 10)
     gated = replace(base, "model", gate="edges")
 
     def steps(cfg, n: int):
@@ -246,8 +249,10 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
              # its feature convolutions started as a cascade of box blurs ([model] feat_init)
              "deeplens, features started as blurs": blur_started,
              # the same six times as long, at the peak learning rate of recipes/train-learn.toml (2e-3)
-             f"deeplens, features started as blurs, {LONGER} steps":
-                 steps(replace(blur_started, "train", lr=PAPER_LR, min_lr=PAPER_LR / 10), LONGER),
+             f"deeplens, features started as blurs, {LONGER} steps": steps(replace(blur_started, "train", **longest), LONGER),
+             # and its kernel started as the disc blur of the given depth ([model] kernel_prior)
+             "deeplens, kernels started as disc blurs": disc_started,
+             f"deeplens, kernels started as disc blurs, {LONGER} steps": steps(replace(disc_started, "train", **longest), LONGER),
              "hybrid, color = linear": replace(base, "data", color="linear"),
              f"hybrid, {LONG} steps": steps(base, LONG),
              **{f"hybrid gated to the edge bands, {n} steps": steps(gated, n) for n in (LONG, LONGER)},
