@@ -117,7 +117,7 @@ def _value(tp, v, s: Spec, dotted: str, file: str):
     if tp in (tuple[int, ...], tuple[float, ...]):
         ok, kind = (_is_int, "integers") if tp == tuple[int, ...] else (_is_num, "numbers")
         want = f"a non-empty list of {kind}{_bounds(s, 'each')}"
-        if not isinstance(v, list) or not v or not all(ok(x) and _in_bounds(x, s) for x in v):
+        if not isinstance(v, (list, tuple)) or not v or not all(ok(x) and _in_bounds(x, s) for x in v):
             raise error(file, dotted, want, v)
         return tuple(v) if tp == tuple[int, ...] else tuple(float(x) for x in v)
     if tp == tuple[str, ...]:
