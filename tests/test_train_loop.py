@@ -668,6 +668,30 @@ def test_the_untrained_hybrid_is_the_classical_renderer(setup):
         model(one["image"], one["signed_lo"], cfg.data.levels)
 
 
+def test_the_teacher_is_the_classical_render_of_the_given_depth_and_adds_to_the_loss(setup, tmp_path):
+    """[loss] teacher: each item carries the classical render of its (corrupted) disparity,
+    area-downsampled as target_lo is, and the loss of the same first batch with the same weights
+    grows by teacher * J(L, it) > 0. Only the paper's networks take it."""
+    from dofsynth.train.classical import classical_render
+    from dofsynth.train.data import area_downsample, training_item
+    from dofsynth.train.segments import find_segments, raw_samples
+
+    _, data, cfg_path, run4 = setup
+    cfg = replace(load(cfg_path), "loss", teacher=0.5)
+    raw = next(raw_samples(find_segments(data, "train"), "train"))
+    item = training_item(raw, replace(cfg, "model", coc_ref=4.0), np.random.default_rng(3))
+    image = item["image"].permute(1, 2, 0).numpy()
+    full = classical_render(image, item["disparity"][0].numpy(), item["focus"], item["max_coc"], json.loads(raw["json"]))
+    assert np.allclose(item["teacher_lo"].permute(1, 2, 0).numpy(), area_downsample(full, 2), atol=1e-6)
+    assert item["teacher_lo"].shape == item["target_lo"].shape
+    path = tmp_path / "teacher.toml"
+    path.write_text(to_toml(replace(cfg, "train", max_steps=1, checkpoint_interval=1)))
+    assert main(["train", str(path), "--data", str(data), "--run", str(tmp_path / "run"), "--device", "cpu"]) == 0
+    assert float(_rows(tmp_path / "run")[1]["loss"]) > float(_rows(run4)[1]["loss"])
+    with pytest.raises(ValueError, match="loss.teacher"):
+        from_dict({"model": {"kind": "hybrid"}, "loss": {"teacher": 0.5}})
+
+
 def test_the_near_regions_grow_and_shrink_by_a_disc_of_the_radius():
     """classical.near_shifted: a plate of near disparity grown and shrunk by r px, by Euclidean
     distance (a disc), the far side untouched."""

@@ -196,6 +196,11 @@ def test_normalized_loss_by_hand():
     assert math.isclose(total.item(), jl.item() + 0.5 * jh.item(), rel_tol=1e-6)
     with_l1, _, _ = deeplens_loss(x, y, x * 0, y * 0, beta=0.5, l1=2.0)   # + 2 * (mean|x| + 0.5 mean|y|)
     assert math.isclose(with_l1.item(), total.item() + 2.0 * (6.5 / 4 + 0.5 * 3.5 / 4), rel_tol=1e-6)
+    # [loss] teacher: + 0.5 * J(L, C_lo), here C_lo = y, so the same J by hand as above
+    taught, _, _ = deeplens_loss(x, y, x * 0, y * 0, beta=0.5, teacher=0.5, teacher_lo=y)
+    assert math.isclose(taught.item(), total.item() + 0.5 * expect, rel_tol=1e-6)
+    with pytest.raises(ValueError, match="teacher_lo"):
+        deeplens_loss(x, y, x * 0, y * 0, teacher=0.5)
 
 
 def test_the_default_loss_pulls_every_pixel_toward_its_target_where_j_pushes_small_errors_up():

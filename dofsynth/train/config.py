@@ -137,6 +137,8 @@ class LossConfig:
     kind: str = key("weighted", choices=("weighted", "j"))  # J with its weights held constant in the gradient
     #                                  # (every pixel pulled toward its target), or the paper's J (dofsynth.train.loss)
     l1: float = key(0.0, lo=0.0)       # optional extra weight of a plain L1 term (see dofsynth.train.loss)
+    teacher: float = key(0.0, lo=0.0)  # weight of D(L, the classical render of the given depth, area-downsampled);
+    #                                  # model.kind = "deeplens" only (dofsynth.train.loss)
 
 
 @dataclass_kw
@@ -203,6 +205,9 @@ def _check(cfg: Config, source: str) -> None:
         raise error(source, "model.kernel_prior", "'none' unless model.kind = 'deeplens', feat_init = 'blur' and "
                     "kernel = 'free' (the table is fitted to the blur-started features, and added to free kernels)",
                     m.kernel_prior)
+    if cfg.loss.teacher and cfg.model.kind != "deeplens":
+        raise error(source, "loss.teacher", "0 unless model.kind = 'deeplens' (it pulls the lens-blur module's output "
+                    "toward the classical render)", cfg.loss.teacher)
     if cfg.model.near_shift and cfg.model.kind != "hybrid":
         raise error(source, "model.near_shift", "0 unless model.kind = 'hybrid' (the renders it mixes are the hybrid's input)",
                     cfg.model.near_shift)

@@ -12,6 +12,7 @@ One item (all float32 tensors, channels first; s = 2**levels, crop side C, low-r
     disparity  (1, C, C)      the corrupted disparity in [0, 1], high res (for baselines)
     classical  (3, C, C)      [model] kind = "hybrid" only: the classical render from it; (9, C, C)
                               with [model] near_shift (classical.classical_stack)
+    teacher_lo (3, C/s, C/s)  [loss] teacher > 0 only: the classical render from it, area-downsampled
     focus, max_coc, target_index, key, shard, corruption (JSON text of the sampled parameters)
 
 Colour: with [data] color = "srgb" (the default, as in the paper) images stay sRGB-encoded in
@@ -168,9 +169,12 @@ def finish_item(c: dict, cfg: Config) -> dict:
         image, dof = srgb_to_linear(image), srgb_to_linear(dof)
     corrupted = c["disparity"]
     signed_lo = signed_disparity(area_downsample(corrupted, s), c["focus"], c["max_coc"], cfg.model.coc_ref)
-    hybrid = {"classical": _chw(classical_input(c, cfg.data.color, cfg.model.near_shift))} \
-        if cfg.model.kind == "hybrid" else {}
-    return {**hybrid,
+    extra = {}
+    if cfg.model.kind == "hybrid":
+        extra["classical"] = _chw(classical_input(c, cfg.data.color, cfg.model.near_shift))
+    if cfg.loss.teacher > 0:
+        extra["teacher_lo"] = _chw(area_downsample(classical_input(c, cfg.data.color), s))
+    return {**extra,
         "image": _chw(image), "image_lo": _chw(area_downsample(image, s)),
         "signed_lo": _chw(signed_lo),
         "target_lo": _chw(area_downsample(dof, s)), "target": _chw(dof),

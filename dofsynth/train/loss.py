@@ -16,6 +16,12 @@ errors; its only minimum is X == Y. `[loss] l1 > 0` adds a plain mean absolute e
 keeps pulling where the errors (and so their weights) are small. `kind = "j"`: the paper's J.
 All computed in float32 even under autocast. The training loss is D(L, T_lo) + beta * D(H, T)
 (+ the L1 term), D being J or its weighted form.
+
+`[loss] teacher > 0` adds teacher * D(L, C_lo): C_lo is the classical render of the *given*
+(possibly wrong) depth at full resolution, area-downsampled as T_lo is. It is a function of what
+the network sees, where T (made from the true depth) is not, so it pulls the lens-blur module
+toward the blur the depth implies rather than toward a hedge; it moves L's minimum off T_lo by
+design (H's minimum stays at T).
 """
 from __future__ import annotations
 
@@ -38,11 +44,13 @@ def normalized_loss(x: torch.Tensor, y: torch.Tensor, alpha: float = 1.5, eps: f
 
 
 def deeplens_loss(low, high, target_lo, target, alpha: float = 1.5, beta: float = 1.0,
-                  eps: float = 1e-8, l1: float = 0.0, kind: str = "j") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                  eps: float = 1e-8, l1: float = 0.0, kind: str = "j", teacher: float = 0.0,
+                  teacher_lo=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(total, D(L), D(H)) for L (B, 3, h, w) vs target_lo and H (B, 3, H, W) vs target, D being
     J (kind "j") or J with its weights held constant (kind "weighted"; the same values).
 
-    total = D(L) + beta * D(H), plus l1 * (mean|L - T_lo| + beta * mean|H - T|) when l1 > 0.
+    total = D(L) + beta * D(H), plus l1 * (mean|L - T_lo| + beta * mean|H - T|) when l1 > 0,
+    plus teacher * D(L, teacher_lo) when teacher > 0 (teacher_lo shaped as L).
     """
     if kind not in KINDS:
         raise ValueError(f"loss kind {kind!r}: expected one of {', '.join(KINDS)}")
@@ -53,4 +61,8 @@ def deeplens_loss(low, high, target_lo, target, alpha: float = 1.5, beta: float 
     if l1 > 0:
         total = total + l1 * ((low.float() - target_lo.float()).abs().mean()
                               + beta * (high.float() - target.float()).abs().mean())
+    if teacher > 0:
+        if teacher_lo is None:
+            raise ValueError("loss.teacher > 0 needs the low-resolution classical render (teacher_lo)")
+        total = total + teacher * normalized_loss(low, teacher_lo, alpha, eps, fixed)
     return total, j_low, j_high
