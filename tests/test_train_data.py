@@ -116,6 +116,10 @@ def test_resolve_reads_coc_ref_and_low_res_side_from_the_data(data_dir):
     assert cfg.model.coc_ref == 4.0 and cfg.infer.low_res_side == 24
     kept = resolve(tiny_config(model={"coc_ref": 8.0}, infer={"low_res_side": 10}), data_dir)
     assert kept.model.coc_ref == 8.0 and kept.infer.low_res_side == 10
+    # [model] light = "boosted" must assume the highlight boost the data's targets were made with
+    assert resolve(tiny_config(model={"light": "boosted"}), data_dir).model.boost == (0.9, 4.0, 2.0)
+    with pytest.raises(ValueError, match=r"boost = \[0.9, 3.0, 2.0\].*\[0.9, 4.0, 2.0\]"):
+        resolve(tiny_config(model={"light": "boosted", "boost": [0.9, 3.0, 2.0]}), data_dir)
 
 
 def test_items_have_the_documented_shapes_ranges_and_exact_low_res(data_dir):

@@ -93,6 +93,10 @@ class ModelConfig:
     kernel: str = key("free", choices=("free", "blur"))      # "blur": kernels >= 0 summing to 1 (softmax)
     kernel_prior: str = key("none", choices=("none", "discs"))  # "discs": the kernel adds a learned table over
     #                                                       # s started as disc blurs of radius |s| coc_ref / 2**levels
+    light: str = key("input", choices=("input", "boosted"))  # the lens-blur module on the images as given (paper), or
+    #                                                       # in linear light, highlight-boosted as the targets were
+    boost: tuple[float, ...] = key((0.9, 4.0, 2.0), lo=0.0)  # light = "boosted": threshold (sRGB), gain, power: the
+    #                                                       # recipe's [render.highlight] (dofsynth.train.light)
     norm: str = key("batch", choices=("none", "batch", "group"))  # after each conv of the predictor / upsampler (measured best)
     up_width: int = key(16, lo=1)                           # guided upsampler feature width
     up_depth: int = key(0, lo=0)                            # U-Net levels of its low-res branch (0: two convs)
@@ -208,6 +212,11 @@ def _check(cfg: Config, source: str) -> None:
     if cfg.loss.teacher and cfg.model.kind != "deeplens":
         raise error(source, "loss.teacher", "0 unless model.kind = 'deeplens' (it pulls the lens-blur module's output "
                     "toward the classical render)", cfg.loss.teacher)
+    if m.light != "input" and (m.kind, cfg.data.color) != ("deeplens", "srgb"):
+        raise error(source, "model.light", "'input' unless model.kind = 'deeplens' and data.color = 'srgb' (it "
+                    "decodes the module's sRGB input and encodes its output)", m.light)
+    if len(m.boost) != 3 or m.boost[0] >= 1:
+        raise error(source, "model.boost", "[threshold < 1, gain, power]", list(m.boost))
     if cfg.model.near_shift and cfg.model.kind != "hybrid":
         raise error(source, "model.near_shift", "0 unless model.kind = 'hybrid' (the renders it mixes are the hybrid's input)",
                     cfg.model.near_shift)

@@ -342,7 +342,18 @@ def data_facts(data_dir: str | Path) -> tuple[float, int]:
 def resolve(cfg: Config, data_dir: str | Path) -> Config:
     """Fill the config values that come from the data (its manifest's recipe): model.coc_ref =
     the largest max_coc the recipe can draw (r_max, full-res px) and infer.low_res_side = the
-    image side / 2**levels. Values already set are kept."""
+    image side / 2**levels. Values already set are kept. [model] light = "boosted" is refused
+    unless [model] boost is the recipe's highlight boost."""
+    if cfg.model.light == "boosted":
+        render = recipe_from_manifest(load_manifest(data_dir), data_dir).render
+        if not render.linear_light:
+            raise ValueError(f"{data_dir}: its targets are blurred in sRGB (render.linear_light = false), so "
+                             "[model] light = 'boosted' does not apply")
+        hl = render.highlight
+        want = (hl.threshold, hl.gain, hl.power) if hl.enabled else (cfg.model.boost[0], 0.0, cfg.model.boost[2])
+        if tuple(cfg.model.boost) != want:
+            raise ValueError(f"{data_dir}: [model] boost = {list(cfg.model.boost)}, but the data's recipe boosts "
+                             f"highlights with {list(want)} ([render.highlight]); set [model] boost to that")
     if cfg.model.coc_ref > 0 and cfg.infer.low_res_side > 0:
         return cfg
     coc, side = data_facts(data_dir)

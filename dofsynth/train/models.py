@@ -16,7 +16,8 @@ LensBlurNet (Wang et al. 2018, Sec. 4.2):
       [model] kernel = "free" leaves them as they are, "blur" makes them non-negative with
       sum 1 (a softmax), so L is a per-pixel mix of the features, like a blur. [model]
       kernel_prior = "discs" adds a learned table T(s) started as disc blurs (kernel_table).
-  L_i = sum_j K_j * F_ij: the lens-blurred image (B, 3, H, W).
+  L_i = sum_j K_j * F_ij: the lens-blurred image (B, 3, H, W); light = "boosted": of A in
+      linear light, highlight-boosted, and L mapped back to sRGB (dofsynth.train.light).
 
 GuidedUpsampler (Sec. 4.3), one x2 step with weights shared across steps, applied from the low
 resolution to any size (the size chain halves it, rounding up, so every step is exact):
@@ -35,6 +36,7 @@ from torch import nn
 from dofsynth.optics.coc import coc_radius
 from dofsynth.train.config import ModelConfig
 from dofsynth.train.kernel_table import KernelTable
+from dofsynth.train.light import BoostedLight
 from dofsynth.train.reach import edge_weight, untouched
 
 
@@ -60,13 +62,10 @@ def area_resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
 
 
 def bilinear(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    return x if tuple(x.shape[-2:]) == tuple(size) else F.interpolate(
-        x, size=size, mode="bilinear", align_corners=False)
+    return x if tuple(x.shape[-2:]) == tuple(size) else F.interpolate(x, size=size, mode="bilinear", align_corners=False)
 
 
-NORMS = ("none", "batch", "group")
-KERNELS = ("free", "blur")
-FEAT_INITS = ("random", "blur")
+NORMS, KERNELS, FEAT_INITS = ("none", "batch", "group"), ("free", "blur"), ("random", "blur")
 
 
 def conv(cin: int, cout: int, dilation: int = 1, stride: int = 1) -> nn.Conv2d:
@@ -254,7 +253,7 @@ class DeepLensNet(nn.Module):
                                 joint=cfg.features == "joint", raw=cfg.raw_feature, kernel=cfg.kernel,
                                 norm=cfg.norm, feat_init=cfg.feat_init, prior_px=prior_px)
         self.up = GuidedUpsampler(cfg.up_width, cfg.up_depth, cfg.norm)
-        self.identity = cfg.identity
+        self.identity, self.light = cfg.identity, (BoostedLight(*cfg.boost) if cfg.light == "boosted" else None)
 
     def forward(self, image: torch.Tensor, signed_lo: torch.Tensor, steps: int | None = None,
                 image_lo: torch.Tensor | None = None, *, sizes: list | None = None,
@@ -271,7 +270,7 @@ class DeepLensNet(nn.Module):
         if image_lo is not None:
             _check(image_lo, 3, "image_lo", sizes[0])
             pyramid[0] = image_lo
-        low = self.lens(pyramid[0], signed_lo)
+        low = self.lens(pyramid[0], signed_lo) if self.light is None else self.light(self.lens, pyramid[0], signed_lo)
         result = low
         for k in range(steps):
             signed_k = bilinear(signed_lo, sizes[k])
