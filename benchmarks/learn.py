@@ -235,6 +235,7 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
     paper = replace(base, "model", **DEEPLENS)
     blur_started = replace(paper, "model", feat_init="blur")  # its features started as blurs, not at random
     disc_started = replace(blur_started, "model", kernel_prior="discs")  # and its kernels as disc blurs of s
+    boosted = replace(disc_started, "model", light="boosted")  # and run in linear light, highlights boosted
     longest = dict(lr=PAPER_LR, min_lr=PAPER_LR / 10)
     gated = replace(base, "model", gate="edges")
 
@@ -253,6 +254,9 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
              # and its kernel started as the disc blur of the given depth ([model] kernel_prior)
              "deeplens, kernels started as disc blurs": disc_started,
              f"deeplens, kernels started as disc blurs, {LONGER} steps": steps(replace(disc_started, "train", **longest), LONGER),
+             # the same in the light the targets are blurred in ([model] light)
+             "deeplens, in the targets' light": boosted,
+             f"deeplens, in the targets' light, {LONGER} steps": steps(replace(boosted, "train", **longest), LONGER),
              "hybrid, color = linear": replace(base, "data", color="linear"),
              f"hybrid, {LONG} steps": steps(base, LONG),
              **{f"hybrid gated to the edge bands, {n} steps": steps(gated, n) for n in (LONG, LONGER)},
