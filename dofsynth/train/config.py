@@ -17,6 +17,7 @@ from pathlib import Path
 import tomli_w
 
 from dofsynth.config import IntRange, Range, error, key, parse_toml, read, read_text, table, to_plain
+from dofsynth.render.look import Highlight
 from dofsynth.shipped import recipe_path
 
 dataclass_kw = dataclasses.dataclass(frozen=True, kw_only=True)
@@ -95,7 +96,8 @@ class ModelConfig:
     #                                                       # s started as disc blurs of radius |s| coc_ref / 2**levels
     light: str = key("input", choices=("input", "boosted"))  # the lens-blur module on the images as given (paper), or
     #                                                       # in linear light, highlight-boosted as the targets were
-    boost: tuple[float, ...] = key((0.9, 4.0, 2.0), lo=0.0)  # light = "boosted": threshold (sRGB), gain, power: the
+    boost: tuple[float, ...] = key((Highlight.threshold, Highlight.gain, Highlight.power), lo=0.0)
+    #                                                       # light = "boosted": threshold (sRGB), gain, power: the
     #                                                       # recipe's [render.highlight] (dofsynth.train.light)
     norm: str = key("batch", choices=("none", "batch", "group"))  # after each conv of the predictor / upsampler (measured best)
     up_width: int = key(16, lo=1)                           # guided upsampler feature width

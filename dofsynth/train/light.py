@@ -8,12 +8,12 @@ benchmark's test split the classical renderer made that way is 2.6 dB (linear li
 the module's input is decoded to linear light and boosted, and its output is un-boosted and
 encoded back to sRGB:  L = encode(B^-1(lens(B(decode(A_lo)), s))).
 
-Here B(x) = x g(m), m = max(R, G, B), g = 1 + gain * clip((m - T) / (1 - T), 0, 1) ** power, T the
-linear value of the sRGB level `threshold`: the render's boost with its exact curve (the render
-uses a 256-knot interpolant of it, within 1e-5 of it). B^-1 finds m from max(y) = m g(m) by
-bisection and differentiates through that root implicitly. Beyond [0, 1] the sRGB encoding goes
-on as straight lines (slopes 12.92 below 0, and its slope at 1 above it), so an out-of-range
-output still has a gradient toward its target.
+Here B(x) = x g(m), m = max(R, G, B), g = 1 + gain * clip((m - T) / (1 - T), 0, 1) ** power, T
+the linear value of the sRGB level `threshold`: the render's boost with its exact curve (the
+render uses a 256-knot interpolant of it; on a photo the two differ by under 2e-5, tested).
+B^-1 finds m from max(y) = m g(m) by bisection and differentiates through that root
+implicitly. Beyond [0, 1] the sRGB encoding goes on as straight lines (slopes 12.92 below 0,
+and its slope at 1 above it), so an out-of-range output still has a gradient toward its target.
 """
 from __future__ import annotations
 
@@ -66,7 +66,8 @@ class BoostedLight(nn.Module):
                 below = mid * self.gain_of(mid) < h
                 lo, hi = torch.where(below, mid, lo), torch.where(below, hi, mid)
             m0 = 0.5 * (lo + hi)
-            slope = self.gain_of(m0) + m0 * self.gain * self.power * self._s(m0).clamp_min(1e-12) ** (self.power - 1) / (1.0 - self.t)
+            dg = self.gain * self.power * self._s(m0).clamp_min(1e-12) ** (self.power - 1) / (1.0 - self.t)
+            slope = self.gain_of(m0) + m0 * dg  # (m g(m))' at the root, >= 1
             f0 = m0 * self.gain_of(m0)
         m = m0 + (h - f0) / slope  # = m0 in value; d m / d h = 1 / (m g(m))'
         m = torch.where(h <= self.t, h, torch.where(h >= top, h / top, m))

@@ -62,7 +62,8 @@ def area_resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
 
 
 def bilinear(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    return x if tuple(x.shape[-2:]) == tuple(size) else F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+    return x if tuple(x.shape[-2:]) == tuple(size) else F.interpolate(
+        x, size=size, mode="bilinear", align_corners=False)
 
 
 NORMS, KERNELS, FEAT_INITS = ("none", "batch", "group"), ("free", "blur"), ("random", "blur")
