@@ -285,9 +285,11 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
                  steps(replace(replace(gated, "model", near_shift=NEAR_SHIFT), "augment", clean_prob=CLEAN_SHARE),
                        LONG)}
     if depth.startswith("predicted:"):  # given an estimator's depth: also trained on it, half of the items
+        estimates = dict(predicted_prob=ESTIMATE_SHARE, predicted_run=str(Path(depth[len("predicted:"):]).resolve()))
         kinds[f"hybrid gated, trained on the estimates (half the items), {LONG} steps"] = steps(replace(
-            gated, "augment", predicted_prob=ESTIMATE_SHARE, predicted_run=str(Path(depth[len("predicted:"):]).resolve())),
-            LONG)
+            gated, "augment", **estimates), LONG)
+        kinds[f"deeplens, in the targets' light, trained on the estimates (half the items), {LONGER} steps"] = steps(
+            replace(replace(boosted, "train", **longest), "augment", **estimates), LONGER)
     if only:
         kinds = {k: v for k, v in kinds.items() if only in k}
     tables: dict[str, list[dict]] = {}
