@@ -122,6 +122,27 @@ def test_resolve_reads_coc_ref_and_low_res_side_from_the_data(data_dir):
         resolve(tiny_config(model={"light": "boosted", "boost": [0.9, 3.0, 2.0]}), data_dir)
 
 
+def _with_recipe_text(data_dir: Path, folder: Path, extra: str) -> Path:
+    """A copy of data_dir's manifest whose recipe has `extra` TOML appended (all resolve reads)."""
+    manifest = json.loads((data_dir / "manifest.json").read_text())
+    manifest["recipe"]["text"] += extra
+    folder.mkdir()
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    return folder
+
+
+def test_resolve_matches_the_boost_to_the_data_and_refuses_srgb_blurred_data(data_dir, tmp_path):
+    off = _with_recipe_text(data_dir, tmp_path / "off", "[render.highlight]\nenabled = false\n")
+    # targets made without the boost: the lens module's boost must have gain 0
+    assert resolve(tiny_config(model={"light": "boosted", "boost": [0.9, 0.0, 2.0]}), off).model.boost == (0.9, 0.0, 2.0)
+    with pytest.raises(ValueError, match=r"boost = \[0.9, 4.0, 2.0\].*\[0.9, 0.0, 2.0\]"):
+        resolve(tiny_config(model={"light": "boosted"}), off)
+    naive = _with_recipe_text(data_dir, tmp_path / "naive", "[render]\nlinear_light = false\n")
+    assert resolve(tiny_config(), naive).model.coc_ref == 4.0  # the paper's sRGB module takes such data
+    with pytest.raises(ValueError, match=r"naive.*blurred in sRGB"):
+        resolve(tiny_config(model={"light": "boosted"}), naive)
+
+
 def test_items_have_the_documented_shapes_ranges_and_exact_low_res(data_dir):
     cfg = resolve(tiny_config(), data_dir)
     _, loader = make_loader(data_dir, "train", cfg, train=True, seed=0)

@@ -332,10 +332,9 @@ def make_loader(data_dir: str | Path, split: str, cfg: Config, *, train: bool, s
     return ds, loader
 
 
-def data_facts(data_dir: str | Path) -> tuple[float, int]:
-    """(r_max, long side) of a data set from the recipe its manifest holds: the high end of
+def data_facts(recipe) -> tuple[float, int]:
+    """(r_max, long side) of a data set's recipe (`recipe_from_manifest`): the high end of
     focus.max_coc (full-res px) and the output size (px)."""
-    recipe = recipe_from_manifest(load_manifest(data_dir), data_dir)
     return float(recipe.focus.max_coc[1]), int(recipe.size)
 
 
@@ -344,8 +343,12 @@ def resolve(cfg: Config, data_dir: str | Path) -> Config:
     the largest max_coc the recipe can draw (r_max, full-res px) and infer.low_res_side = the
     image side / 2**levels. Values already set are kept. [model] light = "boosted" is refused
     unless [model] boost is the recipe's highlight boost."""
-    if cfg.model.light == "boosted":
-        render = recipe_from_manifest(load_manifest(data_dir), data_dir).render
+    boosted = cfg.model.light == "boosted"
+    if not boosted and cfg.model.coc_ref > 0 and cfg.infer.low_res_side > 0:
+        return cfg
+    recipe = recipe_from_manifest(load_manifest(data_dir), data_dir)  # (read once)
+    if boosted:
+        render = recipe.render
         if not render.linear_light:
             raise ValueError(f"{data_dir}: its targets are blurred in sRGB (render.linear_light = false), so "
                              "[model] light = 'boosted' does not apply")
@@ -354,9 +357,7 @@ def resolve(cfg: Config, data_dir: str | Path) -> Config:
         if tuple(cfg.model.boost) != want:
             raise ValueError(f"{data_dir}: [model] boost = {list(cfg.model.boost)}, but the data's recipe boosts "
                              f"highlights with {list(want)} ([render.highlight]); set [model] boost to that")
-    if cfg.model.coc_ref > 0 and cfg.infer.low_res_side > 0:
-        return cfg
-    coc, side = data_facts(data_dir)
+    coc, side = data_facts(recipe)
     if cfg.model.coc_ref <= 0:
         if coc <= 0:
             raise ValueError(f"{data_dir}: the recipe's focus.max_coc is 0 everywhere; set [model] coc_ref")
