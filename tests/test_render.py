@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from dofsynth.optics import Disk, Polygon, kernel, support_radius
-from dofsynth.render import render_planes
+from dofsynth.render import RenderOptions, render_planes
 from dofsynth.render.cateye import EDGE_PX
 from dofsynth.render.fft import Convolver, Tiling, convolve
-from dofsynth.render.layered import LEVEL_RATIO
+from dofsynth.render.layered import LEVEL_RATIO, render_layered_each
 from dofsynth.render.levels import level_grid, level_weights
 from dofsynth.render.planes import Plane
 
@@ -942,3 +942,64 @@ def test_a_ramp_rendered_one_channel_at_a_time_is_the_same(monkeypatch):
             for x, y in zip(whole, apart):
                 np.testing.assert_allclose(x, y, atol=1e-6)
                 assert np.abs(x).max() > 0.1
+
+
+def _soft_disc_map(h, w, r0, width):
+    """A near disc (0.9) before a far background (0.1) with a soft edge `width` px wide: the
+    disparity of a matte's soft outline, whose levels are thin rings with nearly one box."""
+    yy, xx = np.mgrid[:h, :w]
+    r = np.hypot(yy - h / 2, xx - w / 2)
+    return (0.1 + 0.8 * np.clip((r0 - r) / width + 0.5, 0.0, 1.0)).astype(np.float32)
+
+
+def _map_scatter_reference(rgb, alpha, d, focus, max_coc, ap):
+    """The layered scatter of a 2-D disparity map by its definition, in float64: sum_k K_k *
+    (w_k P) / sum_k K_k * w_k over the frame edge-replicated by the largest kernel (P the
+    premultiplied colour and alpha, w_k the levels' linear weights); (C + 1, h, w)."""
+    from scipy.signal import fftconvolve
+
+    from dofsynth.optics.coc import coc_radius
+
+    h, w = alpha.shape
+    c = coc_radius(d, focus, max_coc)
+    smax = support_radius(float(np.abs(c).max()))
+    planes = np.concatenate([rgb * alpha[:, :, None], alpha[:, :, None]], axis=2).transpose(2, 0, 1)
+    pe = np.stack([np.pad(p.astype(np.float64), smax, mode="edge") for p in planes])
+    levels, k0, f = level_weights(np.pad(c, smax, mode="edge"), 0.5, LEVEL_RATIO)
+    num, den = np.zeros((planes.shape[0], h, w)), np.zeros((h, w))
+    for k, ck in enumerate(levels):
+        wk = np.where(k0 == k, 1.0 - f, 0.0) + np.where(k0 == k - 1, f, 0.0)
+        s = support_radius(ck)
+        crop = (slice(smax + s, smax + s + h), slice(smax + s, smax + s + w))
+        ker = kernel(ap, ck).astype(np.float64)
+        den += fftconvolve(wk, ker)[crop]
+        for i in range(planes.shape[0]):
+            num[i] += fftconvolve(wk * pe[i], ker)[crop]
+    return num / den
+
+
+def test_map_scatter_equals_its_defining_sum():
+    """A 2-D disparity map with a soft edge (a matte's outline: many levels in thin rings, kernels
+    of both paths, up to 17 px) renders as the layered scatter's definition computed in float64,
+    for an opaque backmost plane and a cutout over black, a disc and a polygon, focused on the
+    near disc and on the background; through two apertures at once as through each alone."""
+    g = rng(41)
+    h, w = 60, 68
+    img = g.random((h, w, 3), dtype=np.float32)
+    cut = np.zeros((h, w), np.float32)
+    cut[8:52, 10:58] = g.random((44, 48), dtype=np.float32)
+    d = _soft_disc_map(h, w, 18.0, 8.0)
+    for ap in (Disk(), Polygon(6, 15.0)):
+        for focus in (0.9, 0.1):
+            ref = _map_scatter_reference(img, np.ones((h, w), np.float32), d, focus, 20.0, ap)
+            out = render_planes([opaque(img, d)], focus, 20.0, ap, planar=True)
+            np.testing.assert_allclose(out, ref[:3], atol=2e-5)
+            ref = _map_scatter_reference(img, cut, d, focus, 20.0, ap)
+            out = render_planes([black(h, w), Plane(img, cut, d)], focus, 20.0, ap, planar=True)
+            np.testing.assert_allclose(out, ref[:3], atol=2e-5)
+            assert np.abs(out).max() > 0.1
+    aps = [Disk(), Polygon(5, 0.0)]
+    for planes in ([opaque(img, d)], [black(h, w), Plane(img, cut, d)]):
+        both = render_layered_each(planes, 0.9, 20.0, aps, RenderOptions())
+        for ap, x in zip(aps, both):
+            np.testing.assert_allclose(x, render_layered_each(planes, 0.9, 20.0, [ap], RenderOptions())[0], atol=1e-6)
