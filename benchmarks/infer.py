@@ -5,6 +5,7 @@ module, whole frames), and the largest difference between the two results.
 
     .venv/bin/python benchmarks/infer.py [--config recipes/train-deeplens.toml] [--threads 2]
     .venv/bin/python benchmarks/infer.py --config recipes/train-learn-real.toml [--gate] [--near-shift 10] [--gate-margin 10]   # the hybrid
+    .venv/bin/python benchmarks/infer.py --run RUN --photo IMAGE --depth DEPTH [--focus 0.9] [--sizes 2048]    # a trained run
 
 Random weights of the config's model (the paper's networks, or the hybrid: its classical render,
 its U-Net at full resolution, with --gate the edge weight of `[model] gate = "edges"`, with
@@ -13,6 +14,12 @@ that much wider) (batch
 normalisation given random statistics, so folding it is exercised); a random photo and a
 portrait's disparity (`portrait_disparity`: a near subject in focus before a receding
 background). Peak RSS is the process's own maximum (VmHWM), model, photo and result included.
+
+With --run, a trained run (either kind) renders a real photo and its disparity map (normalized:
+any file `dofsynth render --depth` reads, or a depth run's estimate, untimed), both at each
+size's long side, as `dofsynth
+render --model` runs it: a real depth map's soft edges cost the hybrids' classical render more
+than the portrait's hard silhouette does.
 """
 from __future__ import annotations
 
@@ -39,6 +46,38 @@ def portrait_disparity(side: int):
     disparity = (0.05 + 0.3 * yy).astype(np.float32)
     disparity[((xx - 0.5) / 0.22) ** 2 + ((yy - 0.55) / 0.35) ** 2 <= 1.0] = 0.9
     return disparity
+
+
+def measure_run(run: str, photo: str, depth: str, focus: float, side: int, threads: int) -> dict:
+    """One render of a trained run on a real photo in this process, as `measure` (prepared)."""
+    import time
+
+    import cv2
+    import numpy as np
+    import torch
+
+    from dofsynth.generate.worker import keep_large_blocks, peak_rss_mb
+    from dofsynth.io import load_linear_rgba, read_depth
+    from dofsynth.train import infer
+    from dofsynth.train.checkpoint import load_model
+
+    torch.set_num_threads(threads)
+    rgb, _ = load_linear_rgba(photo)
+    h, w = rgb.shape[:2]
+    size = (side, round(side * h / w)) if w >= h else (round(side * w / h), side)  # (width, height)
+    rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA if max(h, w) > side else cv2.INTER_CUBIC).clip(0, None)
+    if Path(depth).is_dir():  # a depth network's run: its estimate, as `render --model` makes it
+        disparity = infer.predict_depth(depth, rgb)
+    else:
+        disparity = cv2.resize(np.asarray(read_depth(depth), np.float32), size, interpolation=cv2.INTER_LINEAR)
+    model, cfg = load_model(run, "cpu")
+    keep_large_blocks()
+    model = infer.for_inference(model.eval())
+    infer.render_with(model, cfg, rgb[:64, :64], disparity[:64, :64], focus)  # warm up
+    t, wall = time.process_time(), time.perf_counter()
+    out = infer.render_with(model, cfg, rgb, disparity, focus)
+    return {"cpu": time.process_time() - t, "wall": time.perf_counter() - wall, "peak_mib": peak_rss_mb(),
+            "out": out, "kind": cfg.model.kind}
 
 
 def measure(config: str, side: int, threads: int, prepared: bool, keys: dict | None = None) -> dict:
@@ -101,6 +140,17 @@ def _child(config: str, side: int, threads: int, prepared: bool, save: str, mode
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
+def _child_run(run: str, photo: str, depth: str, focus: float, side: int, threads: int) -> dict:
+    code = ("import sys, json; sys.path.insert(0, sys.argv[1]); import infer as b; "
+            "r = b.measure_run(*sys.argv[2:5], float(sys.argv[5]), int(sys.argv[6]), int(sys.argv[7])); "
+            "r.pop('out'); print(json.dumps(r))")
+    res = subprocess.run([sys.executable, "-c", code, str(ROOT / "benchmarks"), run, photo, depth, str(focus),
+                          str(side), str(threads)], capture_output=True, text=True, cwd=ROOT)
+    if res.returncode:
+        raise SystemExit(res.stderr[-3000:])
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
 def main(argv=None) -> int:
     import tempfile
 
@@ -113,7 +163,23 @@ def main(argv=None) -> int:
     ap.add_argument("--gate", action="store_true", help='the hybrid with [model] gate = "edges"')
     ap.add_argument("--near-shift", type=int, default=0, help="the hybrid with [model] near_shift = N (px)")
     ap.add_argument("--gate-margin", type=int, default=0, help="with --gate: [model] gate_margin = N (px)")
+    ap.add_argument("--run", help="a trained run (either kind): render --photo with it, one fresh process a size")
+    ap.add_argument("--photo", help="with --run: the photo (resized to each size's long side)")
+    ap.add_argument("--depth", help="with --run: its normalized disparity (a file `dofsynth render --depth` reads, "
+                    "such as a matte), or a depth network's run to estimate it")
+    ap.add_argument("--focus", type=float, default=FOCUS, help=f"with --run: the focus disparity (default {FOCUS})")
     args = ap.parse_args(argv)
+    if args.run:
+        if not (args.photo and args.depth):
+            ap.error("--run needs --photo and --depth")
+        print("| size | run | CPU s | wall s | peak MiB |\n|---|---|---|---|---|")
+        for side in args.sizes:
+            r = _child_run(args.run, args.photo, args.depth, args.focus, side, args.threads)
+            print(f"| {side} | {Path(args.run).name} ({r['kind']}) | {r['cpu']:.2f} | {r['wall']:.2f} | "
+                  f"{r['peak_mib']:.0f} |", flush=True)
+        print(f"({args.threads} threads; {args.photo}, {args.depth}, focus {args.focus}; CPU s: process time of "
+              "one render after a 64 px warm-up; peak: the process's maximum RSS)")
+        return 0
     model = {**({"gate": "edges"} if args.gate else {}), **({"near_shift": args.near_shift} if args.near_shift else {}),
              **({"gate_margin": args.gate_margin} if args.gate_margin else {})}
     print("| size | model | CPU s | wall s | peak MiB | max difference |\n|---|---|---|---|---|---|")
