@@ -15,11 +15,11 @@ normalisation given random statistics, so folding it is exercised); a random pho
 portrait's disparity (`portrait_disparity`: a near subject in focus before a receding
 background). Peak RSS is the process's own maximum (VmHWM), model, photo and result included.
 
-With --run, a trained run (either kind) renders a real photo and its disparity map (normalized:
-any file `dofsynth render --depth` reads, or a depth run's estimate, untimed), both at each
-size's long side, as `dofsynth
-render --model` runs it: a real depth map's soft edges cost the hybrids' classical render more
-than the portrait's hard silhouette does.
+With --run, a trained run (either kind) renders a real photo and its disparity map (normalized,
+of the photo's aspect ratio: any file `dofsynth render --depth` reads; or a depth run's
+estimate, made before the timing, its network then counted in the peak), both at each size's
+long side, as `dofsynth render --model` runs it: a real depth map's soft edges cost the
+hybrids' classical render more than the portrait's hard silhouette does.
 """
 from __future__ import annotations
 
