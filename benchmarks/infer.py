@@ -48,15 +48,26 @@ def portrait_disparity(side: int):
     return disparity
 
 
-def measure_run(run: str, photo: str, depth: str, focus: float, side: int, threads: int) -> dict:
-    """One render of a trained run on a real photo in this process, as `measure` (prepared)."""
+def _timed(model, cfg, image, disparity, focus: float) -> dict:
+    """{"cpu", "wall", "peak_mib", "out"} of one render after a 64 px warm-up, in this process."""
     import time
 
+    from dofsynth.generate.worker import peak_rss_mb
+    from dofsynth.train import infer
+
+    infer.render_with(model, cfg, image[:64, :64], disparity[:64, :64], focus)  # warm up
+    t, wall = time.process_time(), time.perf_counter()
+    out = infer.render_with(model, cfg, image, disparity, focus)
+    return {"cpu": time.process_time() - t, "wall": time.perf_counter() - wall, "peak_mib": peak_rss_mb(), "out": out}
+
+
+def measure_run(run: str, photo: str, depth: str, focus: float, side: int, threads: int) -> dict:
+    """One render of a trained run on a real photo in this process, as `measure` (prepared)."""
     import cv2
     import numpy as np
     import torch
 
-    from dofsynth.generate.worker import keep_large_blocks, peak_rss_mb
+    from dofsynth.generate.worker import keep_large_blocks
     from dofsynth.io import load_linear_rgba, read_depth
     from dofsynth.train import infer
     from dofsynth.train.checkpoint import load_model
@@ -73,23 +84,16 @@ def measure_run(run: str, photo: str, depth: str, focus: float, side: int, threa
     model, cfg = load_model(run, "cpu")
     keep_large_blocks()
     model = infer.for_inference(model.eval())
-    infer.render_with(model, cfg, rgb[:64, :64], disparity[:64, :64], focus)  # warm up
-    t, wall = time.process_time(), time.perf_counter()
-    out = infer.render_with(model, cfg, rgb, disparity, focus)
-    return {"cpu": time.process_time() - t, "wall": time.perf_counter() - wall, "peak_mib": peak_rss_mb(),
-            "out": out, "kind": cfg.model.kind}
+    return {**_timed(model, cfg, rgb, disparity, focus), "kind": cfg.model.kind}
 
 
 def measure(config: str, side: int, threads: int, prepared: bool, keys: dict | None = None) -> dict:
     """One render in this process: {"cpu", "wall", "peak_mib", "out"} (out: the result)."""
 
-    import time
-
     import numpy as np
     import torch
     from torch import nn
 
-    from dofsynth.generate.worker import peak_rss_mb
     from dofsynth.train import infer
     from dofsynth.train.checkpoint import build_model
     from dofsynth.train.config import load, replace
@@ -120,35 +124,29 @@ def measure(config: str, side: int, threads: int, prepared: bool, keys: dict | N
         infer.BAND_ROWS = None  # the whole frame at every step
     rng = np.random.default_rng(0)
     image = rng.random((side, side, 3), dtype=np.float32)
-    disparity = portrait_disparity(side)
-    infer.render_with(model, cfg, image[:64, :64], disparity[:64, :64], FOCUS)  # warm up
-    t, w = time.process_time(), time.perf_counter()
-    out = infer.render_with(model, cfg, image, disparity, FOCUS)
-    return {"cpu": time.process_time() - t, "wall": time.perf_counter() - w,
-            "peak_mib": peak_rss_mb(), "out": out}
+    return _timed(model, cfg, image, portrait_disparity(side), FOCUS)
+
+
+def _in_child(call: str, *args) -> dict:
+    """`call` (Python using `b`, this module, and `argv`, the string args) in a fresh process: the
+    dict it prints as JSON."""
+    code = f"import sys, json, numpy as np; sys.path.insert(0, sys.argv[1]); import infer as b; argv = sys.argv[2:]; {call}"
+    res = subprocess.run([sys.executable, "-c", code, str(ROOT / "benchmarks"), *map(str, args)], capture_output=True,
+                         text=True, cwd=ROOT)
+    if res.returncode:
+        raise SystemExit(res.stderr[-3000:])
+    return json.loads(res.stdout.strip().splitlines()[-1])
 
 
 def _child(config: str, side: int, threads: int, prepared: bool, save: str, model: dict) -> dict:
-    code = ("import sys, json, numpy as np; sys.path.insert(0, sys.argv[1]); import infer as b; "
-            "r = b.measure(sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == '1', json.loads(sys.argv[7])); "
-            "np.save(sys.argv[6], r.pop('out')); print(json.dumps(r))")
-    res = subprocess.run([sys.executable, "-c", code, str(ROOT / "benchmarks"), config, str(side), str(threads),
-                          "1" if prepared else "0", save, json.dumps(model)], capture_output=True, text=True,
-                         cwd=ROOT)
-    if res.returncode:
-        raise SystemExit(res.stderr[-3000:])
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    return _in_child("r = b.measure(argv[0], int(argv[1]), int(argv[2]), argv[3] == '1', json.loads(argv[5])); "
+                     "np.save(argv[4], r.pop('out')); print(json.dumps(r))",
+                     config, side, threads, "1" if prepared else "0", save, json.dumps(model))
 
 
 def _child_run(run: str, photo: str, depth: str, focus: float, side: int, threads: int) -> dict:
-    code = ("import sys, json; sys.path.insert(0, sys.argv[1]); import infer as b; "
-            "r = b.measure_run(*sys.argv[2:5], float(sys.argv[5]), int(sys.argv[6]), int(sys.argv[7])); "
-            "r.pop('out'); print(json.dumps(r))")
-    res = subprocess.run([sys.executable, "-c", code, str(ROOT / "benchmarks"), run, photo, depth, str(focus),
-                          str(side), str(threads)], capture_output=True, text=True, cwd=ROOT)
-    if res.returncode:
-        raise SystemExit(res.stderr[-3000:])
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    return _in_child("r = b.measure_run(*argv[:3], float(argv[3]), int(argv[4]), int(argv[5])); r.pop('out'); "
+                     "print(json.dumps(r))", run, photo, depth, focus, side, threads)
 
 
 def main(argv=None) -> int:
