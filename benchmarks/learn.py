@@ -16,7 +16,7 @@ under an hour.
    corrupted depth (the [augment] setting of recipes/train-learn.toml, drawn with the
    evaluation seed): the trained network, the classical renderer (one image, the options that
    made the targets), the all-in-focus input; PSNR, SSIM and PSNR in the band within max CoC
-   of a depth edge; then the paper's loss J against J plus an L1 term. The validation PSNR
+   of a depth edge; then the config's loss against it plus an L1 term. The validation PSNR
    curve of the main run is printed too.
 4. Real photos (--part real, apart from all; issue #25): recipes/learn-real.toml (the real
    photos and mattes of ../shared/assets at 512x341 px, max CoC 12-24 px, train and test split
@@ -175,11 +175,12 @@ def part_main(base, data: Path, out: Path) -> None:
     print(row("corrupted depth", table["network"]))
     print(row("clean depth", score(clean, data)["network"]))
 
-    print("\n### The paper's loss J vs J + an L1 term (loss.l1 = 1; tested on corrupted depth)\n")
-    l1 = run("c=32 corrupted, J + L1", replace(base, "loss", l1=1.0), data, out)
+    kind = {"j": "J (the paper's)", "weighted": "weighted J (the default)"}[base.loss.kind]
+    print(f"\n### The loss: {kind} vs the same plus an L1 term (loss.l1 = 1; tested on corrupted depth)\n")
+    l1 = run("c=32 corrupted, + L1", replace(base, "loss", l1=1.0), data, out)
     print("| loss                       | PSNR dB | SSIM | edge dB |\n|---|---|---|---|")
-    print(row("J (the paper's)", table["network"]))
-    print(row("J + L1", score(l1, data)["network"]))
+    print(row(kind, table["network"]))
+    print(row(f"{kind.split(' (')[0]} + L1", score(l1, data)["network"]))
 
     print("\n### Validation PSNR of the main run (held-out share of train)\n")
     with open(main_run / "log.csv") as fh:
