@@ -276,6 +276,11 @@ def part_real(out: Path, seeds: list[int], limit: int | None, only: str = "", de
              # ([model] gate_margin): a correction that picks a moved edge is not cut off there
              f"hybrid gated, near regions shifted {NEAR_SHIFT} px, gate {NEAR_SHIFT} px wider, {LONG} steps":
                  steps(replace(gated, "model", near_shift=NEAR_SHIFT, gate_margin=NEAR_SHIFT), LONG),
+             # and with an SSIM term in its loss ([loss] ssim = 1): blending renders where it is unsure
+             # gains PSNR outside the band but lowers local contrast there, which J barely sees
+             f"hybrid gated, near regions shifted {NEAR_SHIFT} px, gate {NEAR_SHIFT} px wider, SSIM term, {LONG} steps":
+                 steps(replace(replace(gated, "model", near_shift=NEAR_SHIFT, gate_margin=NEAR_SHIFT), "loss", ssim=1.0),
+                       LONG),
              # and without the identity rule: where the given depth's CoC is under 0.5 px the
              # classical render's slight blur (a 0.4 px kernel keeps 69 % of a pixel) stays
              f"hybrid gated, near regions shifted {NEAR_SHIFT} px, identity off, {LONG} steps":

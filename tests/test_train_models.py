@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from dofsynth.train.config import ModelConfig, from_dict
-from dofsynth.train.loss import deeplens_loss, normalized_loss
+from dofsynth.train.loss import deeplens_loss, normalized_loss, ssim
 from dofsynth.train.models import (ChannelFeatures, DeepLensNet, GuidedUpsampler, KernelPredictor,
                                    LensBlurNet, size_chain)
 
@@ -266,6 +266,32 @@ def test_normalized_loss_by_hand():
     with pytest.raises(ValueError, match="teacher_lo"):
         deeplens_loss(x, y, x * 0, y * 0, teacher=0.5)
 
+
+
+def test_ssim_is_the_evaluations_and_its_loss_term_is_zero_only_at_the_target():
+    """[loss] ssim: the SSIM of skimage's structural_similarity (what eval reports), 1 at the
+    target, so ssim * (1 - SSIM(H, T)) adds nothing there and pulls H toward T elsewhere."""
+    from skimage.metrics import structural_similarity
+
+    rng = np.random.default_rng(3)
+    t = rng.random((2, 3, 23, 30)).astype(np.float32)
+    h = np.clip(t + 0.08 * rng.standard_normal(t.shape).astype(np.float32), 0, 1)
+    want = np.mean([structural_similarity(t[i].astype(np.float64), h[i].astype(np.float64), data_range=1.0,
+                                          channel_axis=0) for i in range(2)])
+    assert abs(ssim(torch.from_numpy(h), torch.from_numpy(t)).item() - want) < 1e-5
+    T, H = torch.from_numpy(t), torch.from_numpy(h).requires_grad_()
+    assert ssim(T, T).item() == pytest.approx(1.0, abs=1e-6)
+    lo = torch.zeros(2, 3, 4, 4)
+    base, _, _ = deeplens_loss(lo, T, lo, T)
+    at_target, _, _ = deeplens_loss(lo, T, lo, T, ssim_weight=2.0)
+    assert at_target.item() == pytest.approx(base.item(), abs=1e-6)
+    total, _, jh = deeplens_loss(lo, H, lo, T, ssim_weight=2.0)
+    assert total.item() == pytest.approx(jh.item() + 2.0 * (1.0 - want), abs=1e-5)
+    total.backward()
+    step = H.detach() - 0.05 * H.grad / H.grad.abs().max()  # a small step down the gradient
+    assert ssim(step, T).item() > want
+    with pytest.raises(ValueError, match="differ in shape"):
+        ssim(T, T[:, :, :-1])
 
 def test_the_default_loss_pulls_every_pixel_toward_its_target_where_j_pushes_small_errors_up():
     """Errors 0.01 and 0.5, by hand: J = (0.01^2.5 + 0.5^2.5) / (0.01^1.5 + 0.5^1.5) = 0.49862,

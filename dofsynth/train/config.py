@@ -145,6 +145,7 @@ class LossConfig:
     l1: float = key(0.0, lo=0.0)       # optional extra weight of a plain L1 term (see dofsynth.train.loss)
     teacher: float = key(0.0, lo=0.0)  # weight of D(L, the classical render of the given depth, area-downsampled);
     #                                  # model.kind = "deeplens" only (dofsynth.train.loss)
+    ssim: float = key(0.0, lo=0.0)     # weight of 1 - SSIM(H, target), SSIM as the evaluation's (dofsynth.train.loss)
 
 
 @dataclass_kw

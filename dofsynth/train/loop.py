@@ -122,7 +122,7 @@ def forward_loss(model, b: dict, cfg: Config):
     low, high = model(b["image"], b["signed_lo"], cfg.data.levels, b["image_lo"], **full_res_signed(b, cfg))
     loss, j_low, j_high = deeplens_loss(low, high, b["target_lo"], b["target"],
                                         cfg.loss.alpha, cfg.loss.beta, cfg.loss.eps, cfg.loss.l1, cfg.loss.kind,
-                                        cfg.loss.teacher, b.get("teacher_lo"))
+                                        cfg.loss.teacher, b.get("teacher_lo"), cfg.loss.ssim)
     return loss, {"loss_low": j_low, "loss_high": j_high}, psnr_each(high, b["target"])
 
 

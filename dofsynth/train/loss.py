@@ -22,6 +22,12 @@ All computed in float32 even under autocast. The training loss is D(L, T_lo) + b
 the network sees, where T (made from the true depth) is not, so it pulls the lens-blur module
 toward the blur the depth implies rather than toward a hedge; it moves L's minimum off T_lo by
 design (H's minimum stays at T).
+
+`[loss] ssim > 0` adds ssim * (1 - SSIM(H, T)), SSIM as `skimage.metrics.structural_similarity`
+computes it by default (7 x 7 uniform windows, sample covariances, data range 1, the mean over
+the windows inside the image and over the channels), which the evaluation reports: a correction
+that blends renders where it is unsure lowers local contrast and structure, which the
+absolute errors of D barely see. 1 - SSIM is 0 at H == T.
 """
 from __future__ import annotations
 
@@ -43,14 +49,36 @@ def normalized_loss(x: torch.Tensor, y: torch.Tensor, alpha: float = 1.5, eps: f
     return (w * e).sum() / (w.sum() + eps)
 
 
+SSIM_WIN = 7  # skimage's default window (px)
+SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2  # its constants for data range 1
+
+
+def ssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM of (B, C, H, W) images in [0, 1] as skimage's structural_similarity computes it
+    with its defaults and data_range 1 (uniform 7 x 7 windows, sample covariances; the mean over
+    every window inside the image, channel and image) -> 0-d float32 tensor."""
+    if x.shape != y.shape:
+        raise ValueError(f"ssim inputs differ in shape: {tuple(x.shape)} vs {tuple(y.shape)}")
+    x, y = x.float(), y.float()
+    mean = lambda t: torch.nn.functional.avg_pool2d(t, SSIM_WIN, stride=1)  # noqa: E731
+    n = SSIM_WIN * SSIM_WIN
+    mx, my = mean(x), mean(y)
+    vx = (mean(x * x) - mx * mx) * (n / (n - 1))
+    vy = (mean(y * y) - my * my) * (n / (n - 1))
+    cxy = (mean(x * y) - mx * my) * (n / (n - 1))
+    s = ((2 * mx * my + SSIM_C1) * (2 * cxy + SSIM_C2)) / ((mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2))
+    return s.mean()
+
+
 def deeplens_loss(low, high, target_lo, target, alpha: float = 1.5, beta: float = 1.0,
                   eps: float = 1e-8, l1: float = 0.0, kind: str = "j", teacher: float = 0.0,
-                  teacher_lo=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                  teacher_lo=None, ssim_weight: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(total, D(L), D(H)) for L (B, 3, h, w) vs target_lo and H (B, 3, H, W) vs target, D being
     J (kind "j") or J with its weights held constant (kind "weighted"; the same values).
 
     total = D(L) + beta * D(H), plus l1 * (mean|L - T_lo| + beta * mean|H - T|) when l1 > 0,
-    plus teacher * D(L, teacher_lo) when teacher > 0 (teacher_lo shaped as L).
+    plus teacher * D(L, teacher_lo) when teacher > 0 (teacher_lo shaped as L), plus
+    ssim_weight * (1 - ssim(H, T)) when ssim_weight > 0.
     """
     if kind not in KINDS:
         raise ValueError(f"loss kind {kind!r}: expected one of {', '.join(KINDS)}")
@@ -65,4 +93,6 @@ def deeplens_loss(low, high, target_lo, target, alpha: float = 1.5, beta: float 
         if teacher_lo is None:
             raise ValueError("loss.teacher > 0 needs the low-resolution classical render (teacher_lo)")
         total = total + teacher * normalized_loss(low, teacher_lo, alpha, eps, fixed)
+    if ssim_weight > 0:
+        total = total + ssim_weight * (1.0 - ssim(high, target))
     return total, j_low, j_high
