@@ -29,7 +29,8 @@ under an hour.
    with its U-Net one level deeper (kp_depth 4, 1200 steps), and given two more classical renders
    of the depth with its near regions grown and shrunk by 10 px ([model] near_shift = 10, 1200
    steps; also without the identity rule, by 30 px, and with its gate reaching 10 px further,
-   [model] gate_margin = 10), each trained with --seeds seeds;
+   [model] gate_margin = 10, also with an SSIM term, [loss] ssim = 1), each trained with --seeds
+   seeds;
    one table on
    the test split, everyone given the same realistic depth: PSNR and SSIM overall, in the edge
    band, outside it and where no blur reaches (the target is the input), the mean of the seeds
