@@ -59,8 +59,13 @@ def ssim(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     every window inside the image, channel and image) -> 0-d float32 tensor."""
     if x.shape != y.shape:
         raise ValueError(f"ssim inputs differ in shape: {tuple(x.shape)} vs {tuple(y.shape)}")
+    if min(x.shape[-2:]) < SSIM_WIN:
+        raise ValueError(f"ssim needs images of at least {SSIM_WIN} x {SSIM_WIN} px, got {tuple(x.shape[-2:])}")
     x, y = x.float(), y.float()
-    mean = lambda t: torch.nn.functional.avg_pool2d(t, SSIM_WIN, stride=1)  # noqa: E731
+
+    def mean(t: torch.Tensor) -> torch.Tensor:  # over each 7 x 7 window inside the image
+        return torch.nn.functional.avg_pool2d(t, SSIM_WIN, stride=1)
+
     n = SSIM_WIN * SSIM_WIN
     mx, my = mean(x), mean(y)
     vx = (mean(x * x) - mx * mx) * (n / (n - 1))
