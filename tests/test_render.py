@@ -862,36 +862,39 @@ def test_the_exact_modes_ramp_solve_equals_its_map_solve():
             assert diff.max() < 1e-4, diff.max()  # measured 6e-8
 
 
-def _ramp_scatter_reference(rgb, alpha, line, a, focus, max_coc, ap):
-    """The layered ramp scatter by its definition, in float64: out = sum_k [K_k * (w_k P) +
-    M_k * (w_k g P)] / the same sum over the weights alone, P the premultiplied colour and
-    alpha of the frame edge-replicated by the largest kernel, w_k the levels' linear weights, g
-    the CoC's slope (clipped to 1/2) and M_k the moment kernel along the ramp. (C + 1, h, w):
+def _scatter_reference(rgb, alpha, d, focus, max_coc, ap, slope_axis=None):
+    """The layered scatter of a plane with disparity map d (h, w) by its definition, in float64:
+    out = sum_k K_k * (w_k P) / sum_k K_k * w_k, P the premultiplied colour and alpha of the frame
+    edge-replicated by the largest kernel, w_k the levels' linear weights; for a ramp along
+    `slope_axis` a, each level also adds M_k * (w_k g P) (and M_k * (w_k g) to the weights), g the
+    CoC's slope along a (clipped to 1/2) and M_k the moment kernel along it. (C + 1, h, w):
     colour and alpha, normalized."""
-    from scipy.signal import convolve2d
+    from scipy.signal import fftconvolve
 
     from dofsynth.optics.coc import coc_radius
     from dofsynth.optics.kernel import kernel_moments
 
     h, w = alpha.shape
-    c = coc_radius(line.astype(np.float32), focus, max_coc)
+    c = coc_radius(np.asarray(d, np.float32), focus, max_coc)
     smax = support_radius(float(np.abs(c).max()))
     planes = np.concatenate([rgb * alpha[:, :, None], alpha[:, :, None]], axis=2).transpose(2, 0, 1)
     pe = np.stack([np.pad(p.astype(np.float64), smax, mode="edge") for p in planes])
     ce = np.pad(c, smax, mode="edge")
     levels, k0, f = level_weights(ce, 0.5, LEVEL_RATIO)
-    g = np.clip(np.gradient(ce.astype(np.float64)), -0.5, 0.5)
-    shape = pe.shape[1:]
+    g = None if slope_axis is None else np.clip(np.gradient(ce.astype(np.float64), axis=slope_axis), -0.5, 0.5)
     num, den = np.zeros((planes.shape[0], h, w)), np.zeros((h, w))
     for k, ck in enumerate(levels):
         wk = np.where(k0 == k, 1.0 - f, 0.0) + np.where(k0 == k - 1, f, 0.0)
         s = support_radius(ck)
         crop = (slice(smax + s, smax + s + h), slice(smax + s, smax + s + w))
-        for weight, ker in ((wk, kernel(ap, ck)), (wk * g, kernel_moments(ap, ck)[1 - a])):
-            wmap = np.broadcast_to(weight[:, None] if a == 0 else weight[None, :], shape)
-            den += convolve2d(wmap, ker.astype(np.float64))[crop]
+        passes = [(wk, kernel(ap, ck))]
+        if g is not None:
+            passes.append((wk * g, kernel_moments(ap, ck)[1 - slope_axis]))
+        for weight, ker in passes:
+            ker = ker.astype(np.float64)
+            den += fftconvolve(weight, ker)[crop]
             for i in range(planes.shape[0]):
-                num[i] += convolve2d(wmap * pe[i], ker.astype(np.float64))[crop]
+                num[i] += fftconvolve(weight * pe[i], ker)[crop]
     return num / den
 
 
@@ -913,10 +916,10 @@ def test_ramp_scatter_equals_its_defining_sum(a):
         d = np.broadcast_to(line[:, None] if a == 0 else line[None, :], (h, w))
         for ap in (Disk(), Polygon(6, 15.0)):
             for focus in (0.2, 0.6):
-                ref = _ramp_scatter_reference(img, np.ones((h, w), np.float32), line, a, focus, 12.0, ap)
+                ref = _scatter_reference(img, np.ones((h, w), np.float32), d, focus, 12.0, ap, slope_axis=a)
                 out = render_planes([opaque(img, d)], focus, 12.0, ap, planar=True)
                 np.testing.assert_allclose(out, ref[:3], atol=2e-5)
-                ref = _ramp_scatter_reference(img, cut, line, a, focus, 12.0, ap)
+                ref = _scatter_reference(img, cut, d, focus, 12.0, ap, slope_axis=a)
                 out = render_planes([black(h, w), Plane(img, cut, d)], focus, 12.0, ap, planar=True)
                 np.testing.assert_allclose(out, ref[:3], atol=2e-5)  # over black: the normalized colour
 
@@ -952,32 +955,6 @@ def _soft_disc_map(h, w, r0, width):
     return (0.1 + 0.8 * np.clip((r0 - r) / width + 0.5, 0.0, 1.0)).astype(np.float32)
 
 
-def _map_scatter_reference(rgb, alpha, d, focus, max_coc, ap):
-    """The layered scatter of a 2-D disparity map by its definition, in float64: sum_k K_k *
-    (w_k P) / sum_k K_k * w_k over the frame edge-replicated by the largest kernel (P the
-    premultiplied colour and alpha, w_k the levels' linear weights); (C + 1, h, w)."""
-    from scipy.signal import fftconvolve
-
-    from dofsynth.optics.coc import coc_radius
-
-    h, w = alpha.shape
-    c = coc_radius(d, focus, max_coc)
-    smax = support_radius(float(np.abs(c).max()))
-    planes = np.concatenate([rgb * alpha[:, :, None], alpha[:, :, None]], axis=2).transpose(2, 0, 1)
-    pe = np.stack([np.pad(p.astype(np.float64), smax, mode="edge") for p in planes])
-    levels, k0, f = level_weights(np.pad(c, smax, mode="edge"), 0.5, LEVEL_RATIO)
-    num, den = np.zeros((planes.shape[0], h, w)), np.zeros((h, w))
-    for k, ck in enumerate(levels):
-        wk = np.where(k0 == k, 1.0 - f, 0.0) + np.where(k0 == k - 1, f, 0.0)
-        s = support_radius(ck)
-        crop = (slice(smax + s, smax + s + h), slice(smax + s, smax + s + w))
-        ker = kernel(ap, ck).astype(np.float64)
-        den += fftconvolve(wk, ker)[crop]
-        for i in range(planes.shape[0]):
-            num[i] += fftconvolve(wk * pe[i], ker)[crop]
-    return num / den
-
-
 def test_map_scatter_equals_its_defining_sum():
     """A 2-D disparity map with a soft edge (a matte's outline: many levels in thin rings, kernels
     of both paths, up to 17 px) renders as the layered scatter's definition computed in float64,
@@ -991,10 +968,10 @@ def test_map_scatter_equals_its_defining_sum():
     d = _soft_disc_map(h, w, 18.0, 8.0)
     for ap in (Disk(), Polygon(6, 15.0)):
         for focus in (0.9, 0.1):
-            ref = _map_scatter_reference(img, np.ones((h, w), np.float32), d, focus, 20.0, ap)
+            ref = _scatter_reference(img, np.ones((h, w), np.float32), d, focus, 20.0, ap)
             out = render_planes([opaque(img, d)], focus, 20.0, ap, planar=True)
             np.testing.assert_allclose(out, ref[:3], atol=2e-5)
-            ref = _map_scatter_reference(img, cut, d, focus, 20.0, ap)
+            ref = _scatter_reference(img, cut, d, focus, 20.0, ap)
             out = render_planes([black(h, w), Plane(img, cut, d)], focus, 20.0, ap, planar=True)
             np.testing.assert_allclose(out, ref[:3], atol=2e-5)
             assert np.abs(out).max() > 0.1
