@@ -176,12 +176,12 @@ def part_main(base, data: Path, out: Path) -> None:
     print(row("corrupted depth", table["network"]))
     print(row("clean depth", score(clean, data)["network"]))
 
-    kind = {"j": "J (the paper's)", "weighted": "weighted J (the default)"}[base.loss.kind]
-    print(f"\n### The loss: {kind} vs the same plus an L1 term (loss.l1 = 1; tested on corrupted depth)\n")
+    loss, whose = {"j": ("J", "the paper's"), "weighted": ("weighted J", "the default")}[base.loss.kind]
+    print(f"\n### The loss: {loss} ({whose}) vs the same plus an L1 term (loss.l1 = 1; tested on corrupted depth)\n")
     l1 = run("c=32 corrupted, + L1", replace(base, "loss", l1=1.0), data, out)
     print("| loss                       | PSNR dB | SSIM | edge dB |\n|---|---|---|---|")
-    print(row(kind, table["network"]))
-    print(row(f"{kind.split(' (')[0]} + L1", score(l1, data)["network"]))
+    print(row(f"{loss} ({whose})", table["network"]))
+    print(row(f"{loss} + L1", score(l1, data)["network"]))
 
     print("\n### Validation PSNR of the main run (held-out share of train)\n")
     with open(main_run / "log.csv") as fh:

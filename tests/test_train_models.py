@@ -267,7 +267,6 @@ def test_normalized_loss_by_hand():
         deeplens_loss(x, y, x * 0, y * 0, teacher=0.5)
 
 
-
 def test_ssim_is_the_evaluations_and_its_loss_term_is_zero_only_at_the_target():
     """[loss] ssim: the SSIM of skimage's structural_similarity (what eval reports), 1 at the
     target, so ssim * (1 - SSIM(H, T)) adds nothing there and pulls H toward T elsewhere."""
