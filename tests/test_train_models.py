@@ -294,6 +294,7 @@ def test_ssim_is_the_evaluations_and_its_loss_term_is_zero_only_at_the_target():
     with pytest.raises(ValueError, match="at least 7 x 7"):
         ssim(T[:, :, :6], T[:, :, :6])
 
+
 def test_the_default_loss_pulls_every_pixel_toward_its_target_where_j_pushes_small_errors_up():
     """Errors 0.01 and 0.5, by hand: J = (0.01^2.5 + 0.5^2.5) / (0.01^1.5 + 0.5^1.5) = 0.49862,
     and dJ/dx_0 has the sign of 2.5 * 0.01 - 1.5 J < 0: J pushes the small error *up*. The
