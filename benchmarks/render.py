@@ -11,10 +11,13 @@ The naive baseline is a per-pixel gather in plain numpy (each output pixel sums 
 the kernel of its own CoC), timed on six 32x32 crops spread over the scene and scaled by pixel count.
 
 Run: `.venv/bin/python benchmarks/render.py [--size N] [--repeat K]`.
-     `.venv/bin/python benchmarks/render.py --generation [--sizes 1024 4096] [--samples 8]`:
-     recipes/deeplens-18k.toml with the built-in assets at each size (max CoC scaled), samples
-     0..N-1 after one warm-up sample, each stage timed by wrapping the function that does it;
-     medians over the samples, wall and CPU seconds.
+     `.venv/bin/python benchmarks/render.py --generation [--sizes 1024 4096] [--samples 8]
+     [--method layered]`: recipes/deeplens-18k.toml with the built-in assets at each size (max
+     CoC scaled; its own method unless --method names one), samples 0..N-1 after --warm warm-up
+     samples (4) in a process set up as a generation worker, each stage timed by wrapping the
+     function that does it: the kernels (their computation, or their cache's answer) and the
+     kernels' spectra at each FFT's size apart from the rest of the render; medians and means
+     over the samples, wall and CPU seconds.
      `.venv/bin/python benchmarks/render.py --levels`: the level-spacing error table.
      `.venv/bin/python benchmarks/render.py --methods`: the layered and sub-aperture modes
      against the exact mode (PSNR and time as a multiple of the layered one's, side by side)
@@ -104,16 +107,24 @@ STAGES = (("scene", "dofsynth.generate.worker", "sample_scene"), ("compose", "do
           ("encode aif+dof", "dofsynth.record", "encode_srgb_png_rows"),
           ("encode aif+dof", "dofsynth.record", "encode_srgb_png_planar"),  # dof.N.png (planar render)
           ("encode aif+dof", "dofsynth.record", "encode_png8"), ("PNG deflate", "dofsynth.codecs", "encode_png_rgb"),
-          ("encode cover", "dofsynth.record", "encode_alphas"), ("encode depth", "dofsynth.record", "encode_depth"))
+          ("encode cover", "dofsynth.record", "encode_alphas"), ("encode depth", "dofsynth.record", "encode_depth"),
+          ("kernels", "dofsynth.render.fft", "kernel"), ("kernels", "dofsynth.render.scatter", "kernel"),
+          ("kernels", "dofsynth.render.scatter", "kernel_moments"), ("kernels", "dofsynth.render.cellblur", "kernel"),
+          ("kernels", "dofsynth.render.cellblur", "kernel_moments"),
+          ("kernel spectra", "dofsynth.render.fft", "_kernel_spectrum"),
+          ("kernel spectra", "dofsynth.render.scatter", "line_spectrum"))
 
 
-def generation_stages(sizes, samples: int) -> None:
-    """Per-stage wall/CPU time of dofsynth.generate.worker.render_one plus the tar write."""
+def generation_stages(sizes, samples: int, method: str = "", warm: int = 4) -> None:
+    """Per-stage wall/CPU time of dofsynth.generate.worker.render_one plus the tar write, in a
+    process set up as a generation worker, after `warm` samples (a worker in a long job has its
+    CoC grid's kernels cached)."""
+    import dataclasses
     import importlib
     import tempfile
     from pathlib import Path
 
-    from dofsynth.generate.worker import library_for, render_one
+    from dofsynth.generate.worker import library_for, render_one, setup_process
     from generate import bench_recipe  # this folder's generation benchmark: the same recipe
     from dofsynth.shards import write_shard
 
@@ -145,6 +156,7 @@ def generation_stages(sizes, samples: int) -> None:
         timed_fn._timed = True
         setattr(mod, name, timed_fn)
 
+    setup_process()  # one OpenCV thread, the workers' malloc settings
     for stage, module, name in STAGES:
         wrap(stage, module, name)
     root = Path(__file__).resolve().parents[1]
@@ -153,9 +165,12 @@ def generation_stages(sizes, samples: int) -> None:
 
     print(f"dofsynth from {Path(dofsynth.__file__).parent}; load average {os.getloadavg()[0]:.2f}")
     for size in sizes:
-        recipe = bench_recipe(base, size, samples + 1)
+        recipe = bench_recipe(base, size, samples + warm)
+        if method:
+            recipe = dataclasses.replace(recipe, render=dataclasses.replace(recipe.render, method=method))
         library = library_for(recipe)
-        render_one(recipe, library, "train", samples)  # warm-up (kernels, FFT plans, memory)
+        for i in range(samples, samples + max(warm, 1)):  # warm-up (the CoC grid's kernels, FFT plans, memory)
+            render_one(recipe, library, "train", i)
         rows = []
         with tempfile.TemporaryDirectory() as tmp:
             for i in range(samples):
@@ -168,12 +183,15 @@ def generation_stages(sizes, samples: int) -> None:
                 acc["total"] = [time.perf_counter() - t0, time.process_time() - c0]
                 acc["MB / sample"] = [sum(map(len, members.values())) / 1e6] * 2
                 rows.append(dict(acc))
-        print(f"{size} px, {samples} samples (medians):   wall s    cpu s")
+        print(f"{size} px, {recipe.render.method}, {samples} samples   median: wall s   cpu s     mean: cpu s  share")
         names = list(dict.fromkeys([s for s, _, _ in STAGES] + ["tar write", "total", "MB / sample"]))
+        total = statistics.fmean(r["total"][1] for r in rows)
         for stage in names:
             w = statistics.median(r.get(stage, (0.0, 0.0))[0] for r in rows)
             c = statistics.median(r.get(stage, (0.0, 0.0))[1] for r in rows)
-            print(f"  {stage:24s} {w:9.4f} {c:8.4f}", flush=True)
+            mean = statistics.fmean(r.get(stage, (0.0, 0.0))[1] for r in rows)
+            share = f"{100 * mean / total:5.1f} %" if stage not in ("total", "MB / sample") else ""
+            print(f"  {stage:24s} {w:19.4f} {c:8.4f} {mean:16.4f} {share}", flush=True)
 
 
 def level_errors() -> None:
@@ -393,6 +411,8 @@ def main() -> None:
     ap.add_argument("--generation", action="store_true", help="per-stage time of generated samples instead")
     ap.add_argument("--sizes", type=int, nargs="+", default=[1024], help="with --generation or --cat-eye-cost")
     ap.add_argument("--samples", type=int, default=8, help="with --generation or --cat-eye-cost")
+    ap.add_argument("--method", default="", help="with --generation: render with this method (default: the recipe's)")
+    ap.add_argument("--warm", type=int, default=4, help="with --generation: warm-up samples before measuring (default 4)")
     ap.add_argument("--levels", action="store_true", help="the level-spacing error table instead")
     ap.add_argument("--methods", action="store_true",
                     help="layered and sub-aperture against the exact mode (PSNR, time) on small scenes instead")
@@ -433,7 +453,7 @@ def main() -> None:
         return
     if args.generation:
         with scipy.fft.set_workers(1):
-            generation_stages(args.sizes, args.samples)
+            generation_stages(args.sizes, args.samples, args.method, args.warm)
         return
     n = args.size
     planes = scene(n, np.random.default_rng(np.random.SeedSequence(2024)))
