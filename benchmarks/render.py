@@ -169,7 +169,7 @@ def generation_stages(sizes, samples: int, method: str = "", warm: int = 4) -> N
         if method:
             recipe = dataclasses.replace(recipe, render=dataclasses.replace(recipe.render, method=method))
         library = library_for(recipe)
-        for i in range(samples, samples + max(warm, 1)):  # warm-up (the CoC grid's kernels, FFT plans, memory)
+        for i in range(samples, samples + warm):  # warm-up (the CoC grid's kernels, FFT plans, memory)
             render_one(recipe, library, "train", i)
         rows = []
         with tempfile.TemporaryDirectory() as tmp:
@@ -412,7 +412,7 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[1024], help="with --generation or --cat-eye-cost")
     ap.add_argument("--samples", type=int, default=8, help="with --generation or --cat-eye-cost")
     ap.add_argument("--method", default="", help="with --generation: render with this method (default: the recipe's)")
-    ap.add_argument("--warm", type=int, default=4, help="with --generation: warm-up samples before measuring (default 4)")
+    ap.add_argument("--warm", type=int, default=4, help="with --generation: warm-up samples before measuring (default 4, at least 1)")
     ap.add_argument("--levels", action="store_true", help="the level-spacing error table instead")
     ap.add_argument("--methods", action="store_true",
                     help="layered and sub-aperture against the exact mode (PSNR, time) on small scenes instead")
@@ -453,7 +453,7 @@ def main() -> None:
         return
     if args.generation:
         with scipy.fft.set_workers(1):
-            generation_stages(args.sizes, args.samples, args.method, args.warm)
+            generation_stages(args.sizes, args.samples, args.method, max(args.warm, 1))
         return
     n = args.size
     planes = scene(n, np.random.default_rng(np.random.SeedSequence(2024)))
