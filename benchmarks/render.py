@@ -196,7 +196,8 @@ def generation_stages(sizes, samples: int, method: str = "", warm: int = 4) -> N
 
 def level_errors() -> None:
     """The level-spacing error table of docs/rendering.md: kodim01 (../shared/assets) and white
-    noise, vertical ramp CoC -28.8 .. -12.8 px, against level_step=0.05 with fixed steps."""
+    noise, vertical ramp CoC -28.8 .. -12.8 px, against level_step=0.05 with fixed steps; and
+    each setting's CPU time per render (median of 7, its kernels cached by a render before)."""
     from pathlib import Path
 
     from dofsynth.io import load_linear_rgba
@@ -207,14 +208,19 @@ def level_errors() -> None:
     h, w = img.shape[:2]
     ramp = np.broadcast_to(np.linspace(0.1, 0.6, h, dtype=np.float32)[:, None], (h, w))
     noise = np.random.default_rng(0).random((h, w, 3), dtype=np.float32)
-    print("| image | level_step | level_ratio | levels | max abs error | mean abs error |")
+    print("| image | level_step | level_ratio | levels | max abs error | mean abs error | CPU s |")
     for name, im in (("kodim01", img), ("white noise", noise)):
         planes = [Plane(im, np.ones((h, w), np.float32), ramp)]
         ref = render_planes(planes, 1.0, 32.0, level_step=0.05, level_ratio=0.0)
         for step, ratio in ((1.0, 0.0), (0.5, 0.0), (0.25, 0.0), (0.5, 1 / 32), (0.5, 1 / 16)):
             e = np.abs(render_planes(planes, 1.0, 32.0, level_step=step, level_ratio=ratio) - ref)
+            cpu = []
+            for _ in range(7):
+                t = time.process_time()
+                render_planes(planes, 1.0, 32.0, level_step=step, level_ratio=ratio)
+                cpu.append(time.process_time() - t)
             print(f"| {name} | {step} | {ratio:.4g} | {level_grid(-28.8, -12.8, step, ratio).size} "
-                  f"| {e.max():.1e} | {e.mean():.1e} |", flush=True)
+                  f"| {e.max():.1e} | {e.mean():.1e} | {statistics.median(cpu):.3f} |", flush=True)
 
 
 def method_scenes(n: int = 64) -> dict:
