@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import os
 import re
 import statistics
@@ -81,6 +82,13 @@ def real_recipe(size: int, samples: int, shard_size: int = 1, text: str | None =
     if text is None:  # (or that recipe's text from another tree: its paths resolve here)
         text = (ROOT / "recipes" / "shared-assets.toml").read_text(encoding="utf-8")
     return _at_size(text, "bench-real", size, samples, shard_size, 512, 2.0)
+
+
+def with_method(recipe, method: str):
+    """The recipe with its samples rendered by `method` (a METHODS name); its own when empty."""
+    if not method:
+        return recipe
+    return dataclasses.replace(recipe, render=dataclasses.replace(recipe.render, method=method))
 
 
 def io_floor(recipe, n: int, folder: Path) -> float:

@@ -49,17 +49,13 @@ def _recipe(case: str, size: int, samples: int, method: str = ""):
     """The case's recipe of the tree under test (the working folder: its own defaults, such as
     its render method, unless `method` names one), sized by benchmarks/generate.py's rules; its
     paths resolve here."""
-    import dataclasses
-
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import generate as bench  # this tree's helpers; the recipe parser is the tree under test
 
     name = "deeplens-18k.toml" if case == "built-in" else "shared-assets.toml"
     text = (Path.cwd() / "recipes" / name).read_text(encoding="utf-8")
     recipe = bench.bench_recipe(text, size, samples) if case == "built-in" else bench.real_recipe(size, samples, text=text)
-    if method:
-        recipe = dataclasses.replace(recipe, render=dataclasses.replace(recipe.render, method=method))
-    return recipe
+    return bench.with_method(recipe, method)
 
 
 def _asset_bytes(library, record: dict) -> list[bytes]:

@@ -119,13 +119,12 @@ def generation_stages(sizes, samples: int, method: str = "", warm: int = 4) -> N
     """Per-stage wall/CPU time of dofsynth.generate.worker.render_one plus the tar write, in a
     process set up as a generation worker, after `warm` samples (a worker in a long job has its
     CoC grid's kernels cached)."""
-    import dataclasses
     import importlib
     import tempfile
     from pathlib import Path
 
     from dofsynth.generate.worker import library_for, render_one, setup_process
-    from generate import bench_recipe  # this folder's generation benchmark: the same recipe
+    from generate import bench_recipe, with_method  # this folder's generation benchmark: the same recipe
     from dofsynth.shards import write_shard
 
     acc: dict[str, list[float]] = {}
@@ -165,9 +164,7 @@ def generation_stages(sizes, samples: int, method: str = "", warm: int = 4) -> N
 
     print(f"dofsynth from {Path(dofsynth.__file__).parent}; load average {os.getloadavg()[0]:.2f}")
     for size in sizes:
-        recipe = bench_recipe(base, size, samples + warm)
-        if method:
-            recipe = dataclasses.replace(recipe, render=dataclasses.replace(recipe.render, method=method))
+        recipe = with_method(bench_recipe(base, size, samples + warm), method)
         library = library_for(recipe)
         for i in range(samples, samples + warm):  # warm-up (the CoC grid's kernels, FFT plans, memory)
             render_one(recipe, library, "train", i)
