@@ -14,6 +14,8 @@ from decimal import Decimal, localcontext
 
 import numpy as np
 
+from dofsynth.jit import Kernel
+
 
 def srgb_decode_exact(v: float) -> float:
     """The linear value of sRGB level v in [0, 1], correctly rounded to float64."""
@@ -114,6 +116,21 @@ def _encode_tables():
 SRGB8_THRESHOLDS, _BASE, _STEP = _encode_tables()
 
 
+def _srgb8_kernel(x, base, step, out):
+    """`linear_to_srgb8` of a 2-D float32 x into uint8 out, one value at a time: the same
+    look-ups and compare (+inf takes the bin of 2; NaN and negatives find code 0)."""
+    for r in range(x.shape[0]):
+        for c in range(x.shape[1]):
+            v = x[r, c]
+            i = np.int64(0x4000) if v == np.inf else np.int64(np.float32(v).view(np.uint32) >> np.uint32(16))
+            code = base[i]
+            if v >= step[i]:
+                code += np.uint8(1)
+            out[r, c] = code
+
+
+_SRGB8 = Kernel(_srgb8_kernel)  # compiled in processes that render many samples (dofsynth.jit)
+
 
 def linear_to_srgb8(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Linear light (clipped to [0, 1]; NaN counts as 0) -> 8-bit sRGB codes (uint8).
@@ -121,16 +138,22 @@ def linear_to_srgb8(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     Exactly `floor(srgb(x) * 255 + 0.5)` with the float64 sRGB formula, for every float32 x
     (x is cast to float32 first): the code is the number of thresholds `SRGB8_THRESHOLDS` <= x,
     found with two look-ups in tables indexed by the top 16 bits of x and one compare. Monotone
-    in x. Works in blocks of 64K values, so the temporaries stay small whatever the image size.
+    in x. Works in blocks of 64K values, so the temporaries stay small whatever the image size
+    (with the compiled kernels on, dofsynth.jit: one pass, the same codes).
     `out` (uint8, x's shape) is filled if given.
     """
     x = np.asarray(x, dtype=np.float32)
     if out is None:
         out = np.empty(x.shape, np.uint8)
-    flat_in = x.reshape(-1)  # a copy only for a non-contiguous x
     flat_out = out.reshape(-1)
     if not np.shares_memory(flat_out, out):
         raise ValueError("linear_to_srgb8: out must be a contiguous uint8 array")
+    compiled = _SRGB8.get()
+    if compiled is not None and x.size:
+        rows = (1, -1) if x.ndim < 2 else (-1, x.shape[-1])  # a 2-D view is read where it lies
+        compiled(x.reshape(rows), _BASE, _STEP, out.reshape(rows))
+        return out
+    flat_in = x.reshape(-1)  # a copy only for a non-contiguous x
     i = np.empty(min(_CHUNK, flat_in.size), np.intp)
     v = np.empty(i.size, np.float32)
     t = np.empty(i.size, np.float32)

@@ -169,6 +169,21 @@ def write_recipe(tmp_path):
     return make
 
 
+@pytest.fixture(params=["numpy", "compiled"])
+def passes(request):
+    """Run a test with the numpy per-pixel passes, then with the compiled kernels
+    (dofsynth.jit: both must give the same values); this process's setting is restored after."""
+    from dofsynth import jit
+
+    was = jit.enabled()
+    if request.param == "compiled":
+        assert jit.enable(), "numba is missing or DOFSYNTH_JIT=0: the compiled passes cannot be tested"
+    else:
+        jit.disable()
+    yield request.param
+    jit.enable() if was else jit.disable()
+
+
 @pytest.fixture(scope="session")
 def smoke_recipe():
     from dofsynth.recipe import load_recipe

@@ -1,7 +1,8 @@
-"""Colour conversions: the table-driven sRGB encode/decode against the analytic formula, and the
-highlight boost's fast paths (in place, on views) against its plain formula."""
+"""Colour conversions: the table-driven sRGB encode/decode against the analytic formula (with the
+numpy passes and the compiled kernels, dofsynth.jit), and the highlight boost's fast paths (in
+place, on views) against its plain formula."""
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dofsynth.color import (SRGB8_THRESHOLDS, SRGB8_TO_LINEAR, linear_to_srgb, linear_to_srgb8,
@@ -20,7 +21,7 @@ def analytic_codes(x):
     return np.floor(srgb_encode64(x) * 255.0 + 0.5).astype(np.uint8)
 
 
-def test_encode_table_equals_the_analytic_formula():
+def test_encode_table_equals_the_analytic_formula(passes):
     g = np.random.default_rng(np.random.SeedSequence(11))
     x = np.concatenate([g.random(400_000, dtype=np.float32),                  # all of [0, 1)
                         g.random(100_000, dtype=np.float32) * 0.01,           # the linear toe
@@ -34,7 +35,7 @@ def test_encode_table_equals_the_analytic_formula():
     assert diff.max() <= 1 and np.count_nonzero(diff) < 20
 
 
-def test_encode_thresholds_are_exact_and_codes_monotone():
+def test_encode_thresholds_are_exact_and_codes_monotone(passes):
     t = SRGB8_THRESHOLDS
     assert t.dtype == np.float32 and np.all(np.diff(t) > 0)
     below = np.nextafter(t, np.float32(-1))
@@ -51,9 +52,9 @@ def test_encode_thresholds_are_exact_and_codes_monotone():
     np.testing.assert_array_equal(linear_to_srgb8(edges), analytic_codes(edges))
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.lists(st.floats(width=32, allow_nan=True, allow_infinity=True), min_size=1, max_size=50))
-def test_encode_matches_the_formula_for_any_float32(values):
+def test_encode_matches_the_formula_for_any_float32(passes, values):
     x = np.array(values, np.float32)
     np.testing.assert_array_equal(linear_to_srgb8(x), analytic_codes(x))
 

@@ -23,7 +23,7 @@ def formula(x, threshold=0.9, gain=4.0, power=2.0):
     return x * (1 + gain * s**power)
 
 
-def test_the_boost_is_the_formula_within_its_knots_and_leaves_dark_pixels_alone():
+def test_the_boost_is_the_formula_within_its_knots_and_leaves_dark_pixels_alone(passes):
     x = rng(1).random((120, 90, 3), dtype=np.float32) ** 0.5
     x[0, 0], x[0, 1], x[0, 2] = 1.0, (2.0, 1.0, 0.5), 0.0
     b = boost(x, 0.9, 4.0, 2.0)
@@ -36,7 +36,7 @@ def test_the_boost_is_the_formula_within_its_knots_and_leaves_dark_pixels_alone(
     assert np.ptp(ratio[x.min(axis=2) > 1e-3], axis=1).max() < 1e-6
 
 
-def test_unboost_is_the_exact_inverse_in_any_layout():
+def test_unboost_is_the_exact_inverse_in_any_layout(passes):
     x = rng(2).random((64, 70, 3), dtype=np.float32)
     x[:20] = 0.75 + 0.25 * x[:20]
     x[30, 30] = (3.0, 0.2, 0.1)  # beyond white (an HDR asset)

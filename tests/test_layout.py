@@ -11,7 +11,7 @@ PKG = Path(__file__).resolve().parents[1] / "dofsynth"
 # and earlier ones only.
 STAGES = ["dofsynth", "dofsynth.spawned", "dofsynth.config", "dofsynth.files", "dofsynth.progress", "dofsynth.stops", "dofsynth.shipped",
           "dofsynth.rng",
-          "dofsynth.color", "dofsynth.image", "dofsynth.io", "dofsynth.optics", "dofsynth.codecs", "dofsynth.render",
+          "dofsynth.jit", "dofsynth.color", "dofsynth.image", "dofsynth.io", "dofsynth.optics", "dofsynth.codecs", "dofsynth.render",
           "dofsynth.record", "dofsynth.recipe", "dofsynth.assets", "dofsynth.scene", "dofsynth.compose",
           "dofsynth.sample", "dofsynth.shards", "dofsynth.manifest", "dofsynth.generate", "dofsynth.qa",
           "dofsynth.train", "dofsynth.commands", "dofsynth.cli", "dofsynth.__main__"]

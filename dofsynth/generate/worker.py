@@ -13,6 +13,7 @@ import resource
 import sys
 from pathlib import Path
 
+from dofsynth import jit
 from dofsynth.assets import AssetError, build_library
 from dofsynth.generate.plan import shard_task
 from dofsynth.manifest.usage import Usage
@@ -150,12 +151,14 @@ MALLOC_ENV = "DOFSYNTH_WORKER_MALLOC"  # "default": leave glibc's settings; "MMA
 def setup_process() -> None:
     """Set up this process for rendering shards and nothing else (a pool worker, a Ray task, or
     `generate --workers 1` itself): one OpenCV thread (one core per worker, no
-    oversubscription) and the malloc settings above (`keep_large_blocks`). The bytes made do
-    not depend on any of it."""
+    oversubscription), the malloc settings above (`keep_large_blocks`) and the compiled
+    per-pixel passes (dofsynth.jit: about 1 CPU s once, 7-13 % less per sample). The bytes
+    made do not depend on any of it."""
     import cv2
 
     cv2.setNumThreads(1)
     keep_large_blocks()
+    jit.enable()
 
 
 def keep_large_blocks() -> None:

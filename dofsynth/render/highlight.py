@@ -29,6 +29,7 @@ from typing import NamedTuple
 import numpy as np
 
 from dofsynth.color import srgb_decode_exact
+from dofsynth.jit import Kernel
 
 KNOTS = 256
 _ROWS = 128  # rows per block: small temporaries at any size
@@ -178,6 +179,60 @@ def _lines(block: np.ndarray, flat: np.ndarray):
     return chans, np.unravel_index(flat, c0.shape)
 
 
+def _boost_kernel(c0, c1, c2, lo, invert, t, width, scale, bins, knots, m, g, dg, h, start_knot, a4, b, b2):
+    """`_apply` over three (rows, W) channel views in place, pixel by pixel (compiled:
+    dofsynth.jit): the same float32 test against lo, the same float64 factor (`_factor`) or
+    root (`_root`, `_segment`) in the same order of operations, each product rounded once."""
+    one_t = 1.0 - t
+    h_end, g_end = h[h.size - 1], g[g.size - 1]
+    for r in range(c0.shape[0]):
+        for col in range(c0.shape[1]):
+            x0, x1, x2 = c0[r, col], c1[r, col], c2[r, col]
+            if not (x0 > lo or x1 > lo or x2 > lo) or x0 != x0 or x1 != x1 or x2 != x2:
+                continue  # no value above lo, or a NaN: untouched
+            mv = np.float64(max(x0, x1, x2))
+            if not invert:
+                s = (mv - t) / one_t
+                s = min(max(s, 0.0), 1.0) * knots
+                kf = min(np.floor(s), knots - 1)
+                k = np.int64(kf)
+                s = (s - kf) * dg[k] + g[k]
+            elif t < mv < h_end:
+                k = start_knot[min(np.int64((mv - t) * scale), bins)]
+                if mv < h[k]:
+                    k -= 1
+                if mv >= h[k + 1]:
+                    k += 1
+                rr = mv - h[k]
+                if rr < 0.0:
+                    rr = 0.0
+                f = 2.0 * rr / (np.sqrt(a4[k] * rr + b2[k]) + b[k])
+                if f > 1.0:
+                    f = 1.0
+                s = (f * width + m[k]) / mv
+            else:
+                s = (mv if mv <= t else mv / g_end) / mv
+            c0[r, col] = np.float32(np.float64(x0) * s)
+            c1[r, col] = np.float32(np.float64(x1) * s)
+            c2[r, col] = np.float32(np.float64(x2) * s)
+
+
+_BOOST = Kernel(_boost_kernel)  # compiled in processes that render many samples (dofsynth.jit)
+
+
+def _compiled_apply(work: np.ndarray, tables: _Tables, lo: float, invert: bool) -> bool:
+    """`_apply`'s passes over `work` (..., 3) in place by the compiled kernel, when the kernels
+    are on and work has at most 3 axes; False (nothing done) otherwise."""
+    kernel = _BOOST.get()
+    if kernel is None or work.shape[-1] != 3 or work.ndim > 3:
+        return False
+    w3 = work.reshape(1, 1, 3) if work.ndim == 1 else (work[None] if work.ndim == 2 else work)  # views
+    tb = tables
+    kernel(w3[..., 0], w3[..., 1], w3[..., 2], np.float32(lo), invert, tb.t, tb.width, tb.scale, _INDEX_BINS,
+           float(KNOTS), tb.m, tb.g, tb.dg, tb.h, tb.start_knot, tb.a4, tb.b, tb.b2)
+    return True
+
+
 def _apply(x, threshold, gain, power, out, axis, invert: bool):
     tables = _tables(float(threshold), float(gain), float(power))
     x = np.asarray(x, dtype=np.float32)
@@ -186,9 +241,11 @@ def _apply(x, threshold, gain, power, out, axis, invert: bool):
     elif out is not x:
         out[...] = x
     work = np.moveaxis(out, axis, -1)  # (..., C), a view
+    lo = tables.t * (1.0 - 1e-6)  # (compared in float32 with the values)
+    if _compiled_apply(work, tables, lo, invert):
+        return out
     lead = work.reshape(-1, work.shape[-1]) if work.ndim < 2 else None
     blocks = [lead] if lead is not None else [work[r:r + _ROWS] for r in range(0, work.shape[0], _ROWS)]
-    lo = tables.t * (1.0 - 1e-6)
     interleaved = work.strides[-1] == work.itemsize and work.shape[-1] > 1
     for block in blocks:
         if interleaved:  # the few pixels with a value above lo, found in one contiguous pass

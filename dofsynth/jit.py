@@ -1,0 +1,75 @@
+"""Compiled per-pixel passes (numba) for processes that render many samples.
+
+A few passes of every sample are elementwise work that numpy spreads over several sweeps of
+memory: the exact sRGB encode (dofsynth.color.linear_to_srgb8) and the highlight boost and its
+inverse (dofsynth.render.highlight). Each has a plain-Python kernel beside its numpy reference;
+`Kernel` compiles it with numba on first use, *only once `enable()` has been called* (by
+dofsynth.generate.worker.setup_process: a generation worker, `generate --workers 1`, the
+benchmarks). Importing numba and loading the compiled code costs about 1 CPU s per process
+(once per machine and source change: compiling, a few seconds, cached in __pycache__);
+a sample then costs 7-13 % less (docs/generate.md, "Speed"). Short runs (one render, the
+command line, tests calling the renderer) keep the numpy reference.
+
+The kernels give the same bytes as the references: the same IEEE operations in the same order
+(+, -, *, /, sqrt, compares and table look-ups; numba's default never fuses them or reorders
+them), checked on adversarial values in tests/test_jit.py. DOFSYNTH_JIT=0 keeps them off (as
+does a missing numba); DOFSYNTH_JIT=1 turns them on in every process.
+"""
+from __future__ import annotations
+
+import os
+
+ENV = "DOFSYNTH_JIT"
+_STATE = {"on": None}  # None: not decided (DOFSYNTH_JIT=1 turns on, else off until enable())
+
+
+def _setting() -> str:
+    want = os.environ.get(ENV, "")
+    if want not in ("", "0", "1"):
+        raise ValueError(f"{ENV}={want!r}: want 0 (numpy passes) or 1 (compiled passes in every process)")
+    return want
+
+
+def enable() -> bool:
+    """Use the compiled kernels in this process from now on (unless DOFSYNTH_JIT=0 or numba
+    is missing); returns whether they are on. Results do not depend on it."""
+    if _setting() == "0":
+        _STATE["on"] = False
+        return False
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        _STATE["on"] = False
+        return False
+    _STATE["on"] = True
+    return True
+
+
+def disable() -> None:
+    """Back to the numpy references in this process (tests compare the two)."""
+    _STATE["on"] = False
+
+
+def enabled() -> bool:
+    """Whether the compiled kernels are on in this process."""
+    if _STATE["on"] is None:
+        return enable() if _setting() == "1" else False
+    return bool(_STATE["on"])
+
+
+class Kernel:
+    """A plain-Python function of numpy arrays and scalars, compiled by numba on the first
+    `get()` after `enable()` (cached on disk; IEEE semantics: no fast-math, division by zero
+    gives inf or NaN as in numpy). `get()` is None while the kernels are off."""
+
+    def __init__(self, fn):
+        self.fn, self._compiled = fn, None
+
+    def get(self):
+        if not enabled():
+            return None
+        if self._compiled is None:
+            import numba
+
+            self._compiled = numba.njit(cache=True, nogil=True, error_model="numpy")(self.fn)
+        return self._compiled
