@@ -1,6 +1,7 @@
 """The compiled per-pixel passes (dofsynth.jit) give the numpy references' bytes: the highlight
-boost and its inverse on adversarial values in every layout, whole samples, and a generated
-data set with them off and on; and the switch's own contract."""
+boost and its inverse on adversarial values in every layout, a cutout's un-premultiplying, whole
+samples with them off and on; and the switch's own contract. (The sRGB encode is tested both
+ways in tests/test_color.py.)"""
 from __future__ import annotations
 
 import numpy as np
@@ -72,6 +73,22 @@ def test_compiled_boost_and_inverse_are_the_numpy_bytes_in_every_layout(params):
             ref, got = both(in_place)
             assert np.array_equal(bits(ref), bits(got)), (name, fn.__name__, "in place")
     assert KNOTS > 1
+
+
+def test_compiled_unpremultiply_is_the_numpy_bytes():
+    from dofsynth.assets.placement import ObjectParams
+    from dofsynth.compose import place_premultiplied
+
+    g = np.random.default_rng(3)
+    premul = g.random((40, 50, 4), dtype=np.float32) * 2  # alpha up to 2 (a resampled extent's overshoot)
+    a = premul[..., 3].reshape(-1)
+    near = np.float32([0, 1e-6, 1, 1e-30, np.nan, np.inf])
+    a[: 3 * near.size] = np.concatenate([near, np.nextafter(near, np.float32(-1)), np.nextafter(near, np.float32(2))])
+    for x, y, flip in ((5, 7, False), (-9, -4, True), (30, 20, False)):  # inside, cut by the frame, partly outside
+        params = ObjectParams(disparity=0.8, scale=1.0, x=x, y=y, flip=flip)
+        ref, got = both(lambda: place_premultiplied(premul, (50, 40), params, 60, 70))
+        for r, o in zip(ref, got):
+            assert np.array_equal(bits(r), bits(o)), (x, y)
 
 
 def test_samples_are_the_same_bytes_with_the_compiled_passes(smoke_recipe, smoke_library):
