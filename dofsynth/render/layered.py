@@ -101,10 +101,11 @@ def _composite_varying(accs, rgb, alpha, dmap, box, max_coc, focus, apertures, b
     c_e = cm[np.ix_(iy, ix)]  # compact along broadcast axes
     one = backmost and is_one(alpha)
 
-    def read(chans, y0, y1, x0, x1):
+    def read(chans, y0, y1, x0, x1, out=None):
         """E[y0:y1, x0:x1]'s premultiplied colour (channels 0-2) and alpha (3), the channels
-        `chans`, (len(chans), h, w)."""
-        out = np.empty((len(chans), y1 - y0, x1 - x0), np.float32)
+        `chans`, (len(chans), h, w): written into `out` when given (any strides)."""
+        if out is None:
+            out = np.empty((len(chans), y1 - y0, x1 - x0), np.float32)
         a = None if one else grab(alpha, ey0 + y0, ey0 + y1, ex0 + x0, ex0 + x1, True)
         for j, ch in enumerate(chans):
             if ch == 3:

@@ -139,17 +139,21 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
         plans.append((float(ck), s, p0, p1, q0, q1, j0, small, passes_of))
     n_u = sfft.next_fast_len(le_u, real=True)
     nu2 = n_u // 2 + 1
-    group = int(np.clip(LINE_GROUP_BYTES // (le_a * le_u * 4 + (le_a + lo_a) * nu2 * 8), 1, C))
+    group = int(np.clip(LINE_GROUP_BYTES // (le_a * n_u * 4 + (le_a + lo_a) * nu2 * 8), 1, C))
     for c0 in range(0, C, group):
         chans = range(c0, min(c0 + group, C))
-        x = read(chans, 0, shape[0], 0, shape[1])
-        if a == 1:  # (G, a, u)
-            xt = np.empty((x.shape[0], x.shape[2], x.shape[1]), np.float32)
-            for ch, dst in zip(x, xt):  # straight into the stack (no copy of E)
+        # E as (G, a, u) in rows of n_u values, zero past le_u: the transform along u reads it
+        # where it lies (scipy would copy it into a padded array)
+        padded = np.empty((len(chans), le_a, n_u), np.float32)
+        padded[:, :, le_u:] = 0.0
+        x = padded[:, :, :le_u]
+        if a == 0:
+            read(chans, 0, shape[0], 0, shape[1], out=x)
+        else:
+            for ch, dst in zip(read(chans, 0, shape[0], 0, shape[1]), x):  # transposed into the stack
                 res = cv2.transpose(ch, dst=dst)
                 if res is not dst:
                     dst[...] = res
-            x = xt
         # the group's sums in space, (G, lo_a, lo_u): the output itself for a vertical ramp
         res = [out[c0 : c0 + len(chans)] if a == 0 else np.zeros((len(chans), lo_a, lo_u), np.float32) for out in outs]
         for ck, s, p0, p1, q0, q1, j0, small, passes_of in plans:
@@ -171,7 +175,7 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
         accs = [None] * len(apertures)  # per aperture: the FFT levels' sum in the u-spectrum, rows Q0..Q1
         for ck, s, p0, p1, q0, q1, j0, small, passes_of in big:
             if spec is None:
-                spec = sfft.rfft(x[:, P0:P1], n=n_u, axis=2)
+                spec = sfft.rfft(padded[:, P0:P1], axis=2)
             n_k = sfft.next_fast_len(p1 - p0 + 2 * s)
             fwd = {}  # per pass weight: the strip times it, transformed along a (n_k points)
             for i, passes in enumerate(passes_of):
@@ -196,7 +200,7 @@ def scatter_line(read, shape, c_e, smax, apertures, outs, level_step, level_rati
                 if accs[i] is None:
                     accs[i] = np.zeros((len(chans), Q1 - Q0, nu2), np.complex64)
                 accs[i][:, q0 - Q0 : q1 - Q0] += back[:, j0 : j0 + q1 - q0]
-        del x, spec
+        del x, padded, spec
         for i, (acc, r) in enumerate(zip(accs, res)):
             for j in range(len(chans) if acc is not None else 0):  # one channel at a time: memory
                 r[j, Q0:Q1] += sfft.irfft(acc[j], n=n_u, axis=1)[:, smax : smax + lo_u]
