@@ -129,7 +129,7 @@ def _srgb8_kernel(x, base, step, out):
             out[r, c] = code
 
 
-_SRGB8 = Kernel(_srgb8_kernel)  # compiled in processes that render many samples (dofsynth.jit)
+_SRGB8 = Kernel(_srgb8_kernel, "void(float32[:, :], uint8[::1], float32[::1], uint8[:, :])")  # (dofsynth.jit)
 
 
 def linear_to_srgb8(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -149,7 +149,7 @@ def linear_to_srgb8(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     if not np.shares_memory(flat_out, out):
         raise ValueError("linear_to_srgb8: out must be a contiguous uint8 array")
     compiled = _SRGB8.get()
-    if compiled is not None and x.size:
+    if compiled is not None and x.size and out.dtype == np.uint8:
         rows = (1, -1) if x.ndim < 2 else (-1, x.shape[-1])  # a 2-D view is read where it lies
         compiled(x.reshape(rows), _BASE, _STEP, out.reshape(rows))
         return out

@@ -214,7 +214,7 @@ def _unpremultiply_kernel(part, rgb, alpha):
                 rgb[r, c, ch] = part[r, c, ch] * inv
 
 
-_UNPREMULTIPLY = jit.Kernel(_unpremultiply_kernel)
+_UNPREMULTIPLY = jit.Kernel(_unpremultiply_kernel, "void(float32[:, :, :], float32[:, :, :], float32[:, :])")
 
 
 def _asset(library: AssetLibrary, scene: Scene, role: str) -> Asset:

@@ -1,19 +1,22 @@
 """Compiled per-pixel passes (numba) for processes that render many samples.
 
 A few passes of every sample are elementwise work that numpy spreads over several sweeps of
-memory: the exact sRGB encode (dofsynth.color.linear_to_srgb8) and the highlight boost and its
-inverse (dofsynth.render.highlight). Each has a plain-Python kernel beside its numpy reference;
-`Kernel` compiles it with numba on first use, *only once `enable()` has been called* (by
-dofsynth.generate.worker.setup_process: a generation worker, `generate --workers 1`, the
-benchmarks). Importing numba and loading the compiled code costs about 1 CPU s per process
-(once per machine and source change: compiling, a few seconds, cached in __pycache__);
-a sample then costs 7-13 % less (docs/generate.md, "Speed"). Short runs (one render, the
-command line, tests calling the renderer) keep the numpy reference.
+memory: the exact sRGB encode (dofsynth.color.linear_to_srgb8), the highlight boost and its
+inverse (dofsynth.render.highlight) and a cutout's un-premultiplying
+(dofsynth.compose.place_premultiplied). Each has a plain-Python kernel with its numba signature
+beside its numpy reference; the kernels are compiled (or loaded from numba's cache) and used
+*only once `enable()` has been called*, which dofsynth.generate.worker.setup_process does: a
+generation worker, `generate --workers 1`, the benchmarks. That costs a process about 0.65 CPU s
+once, at `enable()` (importing numba and loading the compiled code; after a checkout or an edit
+of a kernel's module the first process compiles it, a few seconds, cached in __pycache__), and
+about 110 MiB of resident memory (72 MiB of it the LLVM library's pages, shared between
+processes); a sample then costs 4-15 % less CPU time (docs/generate.md, "Speed and memory").
+Short runs (one render, the command line, tests calling the renderer) keep the numpy passes.
 
 The kernels give the same bytes as the references: the same IEEE operations in the same order
-(+, -, *, /, sqrt, compares and table look-ups; numba's default never fuses them or reorders
-them), checked on adversarial values in tests/test_jit.py. DOFSYNTH_JIT=0 keeps them off (as
-does a missing numba); DOFSYNTH_JIT=1 turns them on in every process.
+(+, -, *, /, sqrt, compares and table look-ups; numba's default never fuses or reorders them),
+checked on adversarial values in tests/test_jit.py. DOFSYNTH_JIT=0 keeps them off (as does a
+missing numba); DOFSYNTH_JIT=1 turns them on in every process.
 """
 from __future__ import annotations
 
@@ -42,6 +45,8 @@ def enable() -> bool:
         _STATE["on"] = False
         return False
     _STATE["on"] = True
+    for k in _KERNELS:  # loaded now, with the process's start-up, not on its first sample
+        k.get()
     return True
 
 
@@ -57,13 +62,18 @@ def enabled() -> bool:
     return bool(_STATE["on"])
 
 
-class Kernel:
-    """A plain-Python function of numpy arrays and scalars, compiled by numba on the first
-    `get()` after `enable()` (cached on disk; IEEE semantics: no fast-math, division by zero
-    gives inf or NaN as in numpy). `get()` is None while the kernels are off."""
+_KERNELS: list = []  # every Kernel made: `enable()` loads them all
 
-    def __init__(self, fn):
-        self.fn, self._compiled = fn, None
+
+class Kernel:
+    """A plain-Python function of numpy arrays and scalars, compiled by numba for one
+    `signature` (numba's type string; any array layout where it says `[:, :]`) when the
+    kernels are on (cached on disk; IEEE semantics: no fast-math, division by zero gives inf
+    or NaN as in numpy). `get()` is the compiled function, or None while the kernels are off."""
+
+    def __init__(self, fn, signature: str):
+        self.fn, self.signature, self._compiled = fn, signature, None
+        _KERNELS.append(self)
 
     def get(self):
         if not enabled():
@@ -71,5 +81,5 @@ class Kernel:
         if self._compiled is None:
             import numba
 
-            self._compiled = numba.njit(cache=True, nogil=True, error_model="numpy")(self.fn)
+            self._compiled = numba.njit(self.signature, cache=True, nogil=True, error_model="numpy")(self.fn)
         return self._compiled

@@ -217,14 +217,16 @@ def _boost_kernel(c0, c1, c2, lo, invert, t, width, scale, bins, knots, m, g, dg
             c2[r, col] = np.float32(np.float64(x2) * s)
 
 
-_BOOST = Kernel(_boost_kernel)  # compiled in processes that render many samples (dofsynth.jit)
+_BOOST = Kernel(_boost_kernel, "void(float32[:, :], float32[:, :], float32[:, :], float32, boolean, float64, float64, "
+                               "float64, int64, float64, float64[::1], float64[::1], float64[::1], float64[::1], "
+                               "intp[::1], float64[::1], float64[::1], float64[::1])")  # (dofsynth.jit)
 
 
 def _compiled_apply(work: np.ndarray, tables: _Tables, lo: float, invert: bool) -> bool:
     """`_apply`'s passes over `work` (..., 3) in place by the compiled kernel, when the kernels
-    are on and work has at most 3 axes; False (nothing done) otherwise."""
+    are on and work is float32 with at most 3 axes; False (nothing done) otherwise."""
     kernel = _BOOST.get()
-    if kernel is None or work.shape[-1] != 3 or work.ndim > 3:
+    if kernel is None or work.shape[-1] != 3 or work.ndim > 3 or work.dtype != np.float32:
         return False
     w3 = work.reshape(1, 1, 3) if work.ndim == 1 else (work[None] if work.ndim == 2 else work)  # views
     tb = tables
