@@ -150,7 +150,8 @@ def linear_to_srgb8(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         raise ValueError("linear_to_srgb8: out must be a contiguous uint8 array")
     compiled = _SRGB8.get()
     if compiled is not None and x.size and out.dtype == np.uint8:
-        rows = (1, -1) if x.ndim < 2 else (-1, x.shape[-1])  # a 2-D view is read where it lies
+        # one row when x is contiguous (or 1-D), else its last axis: a 2-D view is read where it lies
+        rows = (1, -1) if x.ndim < 2 or x.flags.c_contiguous else (-1, x.shape[-1])
         compiled(x.reshape(rows), _BASE, _STEP, out.reshape(rows))
         return out
     flat_in = x.reshape(-1)  # a copy only for a non-contiguous x
