@@ -6,21 +6,26 @@ inverse (dofsynth.render.highlight) and a cutout's un-premultiplying
 (dofsynth.compose.place_premultiplied). Each has a plain-Python kernel with its numba signature
 beside its numpy reference; the kernels are compiled (or loaded from numba's cache) and used
 *only once `enable()` has been called*, which dofsynth.generate.worker.setup_process does: a
-generation worker, `generate --workers 1`, the benchmarks. That costs a process about 0.65 CPU s
+generation worker, `generate --workers 1`, the benchmarks. That costs a process about 0.6 CPU s
 once, at `enable()` (importing numba and loading the compiled code; after a checkout or an edit
-of a kernel's module the first process compiles it, a few seconds, cached in __pycache__), and
+of a kernel's module the first process compiles it, a few seconds, and caches it in
+__pycache__ beside the module, or in numba's cache folder where that one is read-only), and
 about 110 MiB of resident memory (72 MiB of it the LLVM library's pages, shared between
-processes); a sample then costs 4-15 % less CPU time (docs/generate.md, "Speed and memory").
-Short runs (one render, the command line, tests calling the renderer) keep the numpy passes.
+processes); a sample then costs 7-10 % less CPU time (docs/generate.md, "Speed and memory").
+Other processes (`dofsynth render`, library callers, tests calling the renderer) keep the numpy
+passes: their start-up stays light.
 
 The kernels give the same bytes as the references: the same IEEE operations in the same order
 (+, -, *, /, sqrt, compares and table look-ups; numba's default never fuses or reorders them),
 checked on adversarial values in tests/test_jit.py. DOFSYNTH_JIT=0 keeps them off (as does a
-missing numba); DOFSYNTH_JIT=1 turns them on in every process.
+missing numba, or one that fails to compile them: a warning says so and the numpy passes run);
+DOFSYNTH_JIT=1 turns them on in every process.
 """
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 
 ENV = "DOFSYNTH_JIT"
 _STATE = {"on": None}  # None: not decided (DOFSYNTH_JIT=1 turns on, else off until enable())
@@ -39,14 +44,18 @@ def enable() -> bool:
     if _setting() == "0":
         _STATE["on"] = False
         return False
-    try:
-        import numba  # noqa: F401
-    except ImportError:
+    if importlib.util.find_spec("numba") is None:
         _STATE["on"] = False
         return False
     _STATE["on"] = True
-    for k in _KERNELS:  # loaded now, with the process's start-up, not on its first sample
-        k.get()
+    try:
+        for k in _KERNELS:  # loaded now, with the process's start-up, not on its first sample
+            k.get()
+    except Exception as exc:  # a numba that cannot build them here: the numpy passes, said once
+        _STATE["on"] = False
+        print(f"dofsynth: warning: compiled per-pixel passes unavailable ({type(exc).__name__}: {exc}); "
+              f"using the numpy passes (the same bytes, slower)", file=sys.stderr, flush=True)
+        return False
     return True
 
 

@@ -107,6 +107,27 @@ def test_samples_are_the_same_bytes_with_the_compiled_passes(smoke_recipe, smoke
             assert ref == got, (recipe.name, i)
 
 
+def test_a_numba_that_cannot_compile_leaves_the_numpy_passes_with_a_warning(monkeypatch, capsys):
+    import numba
+
+    from dofsynth.color import _SRGB8, linear_to_srgb8
+
+    was = jit.enabled()
+    try:
+        jit.disable()
+        monkeypatch.setattr(_SRGB8, "_compiled", None)
+
+        def broken(*a, **k):
+            raise RuntimeError("no LLVM target here")
+        monkeypatch.setattr(numba, "njit", broken)
+        assert jit.enable() is False and not jit.enabled()
+        assert "compiled per-pixel passes unavailable (RuntimeError: no LLVM target here)" in capsys.readouterr().err
+        assert linear_to_srgb8(np.float32([0.5]))[0] == 188  # the numpy pass still runs
+    finally:
+        monkeypatch.undo()
+        jit.enable() if was else jit.disable()
+
+
 def test_the_switch(monkeypatch):
     was = jit.enabled()
     try:

@@ -152,7 +152,7 @@ def setup_process() -> None:
     """Set up this process for rendering shards and nothing else (a pool worker, a Ray task, or
     `generate --workers 1` itself): one OpenCV thread (one core per worker, no
     oversubscription), the malloc settings above (`keep_large_blocks`) and the compiled
-    per-pixel passes (dofsynth.jit: about 1 CPU s once, 7-13 % less per sample). The bytes
+    per-pixel passes (dofsynth.jit: about 0.6 CPU s once, 7-10 % less per sample). The bytes
     made do not depend on any of it."""
     import cv2
 
