@@ -29,6 +29,7 @@ import sys
 
 ENV = "DOFSYNTH_JIT"
 _STATE = {"on": None}  # None: not decided (DOFSYNTH_JIT=1 turns on, else off until enable())
+_KERNELS: list = []  # every Kernel made: `enable()` loads them all
 
 
 def _setting() -> str:
@@ -69,9 +70,6 @@ def enabled() -> bool:
     if _STATE["on"] is None:
         return enable() if _setting() == "1" else False
     return bool(_STATE["on"])
-
-
-_KERNELS: list = []  # every Kernel made: `enable()` loads them all
 
 
 class Kernel:
