@@ -24,7 +24,8 @@ peak memory belongs to that case alone. Columns:
   2 workers without starting them (a few samples are too few to judge it end to end).
 - `--scaling SIZE:SAMPLES` (default 1024:96, shards of 2): the 1 -> 2 worker speed-up end to
   end, over a run long enough that starting the workers (spawning, importing, taking this
-  process's asset library: 0.5-0.9 s here) weighs little, as in a real job; it also prints that
+  process's asset library: 0.5-0.9 s here, and about 0.6 s loading the compiled
+  passes of dofsynth.jit) weighs little, as in a real job; it also prints that
   start-up (and the idle tail of the run).
 - `--malloc default`: the workers keep glibc's own malloc settings (before/after comparisons of
   `dofsynth.generate.worker.setup_process`).

@@ -16,7 +16,8 @@ warm-up samples (4 by default, indices past the measured ones; the first reporte
 interleave trees and cases, so a slow spell of a shared machine hits them all.
 
 Each process is set up as a generation worker is (`setup_process`: one OpenCV thread, the
-workers' malloc settings; BLAS and OpenMP threads as this machine's environment sets them).
+workers' malloc settings, the compiled per-pixel passes of dofsynth.jit; BLAS and OpenMP
+threads as this machine's environment sets them).
 Per sample, in that process's own CPU time (`time.process_time`):
 - `sample`: draw the scene, render, encode the members and write them as a one-sample shard
   (`render_one` and `write_shard`, what a worker does per sample);
@@ -112,7 +113,7 @@ def child(case: str, size: int, total: int, indices: list[int], warm: list[int],
     from dofsynth.generate.worker import library_for, setup_process
     from dofsynth.shards import write_shard
 
-    setup_process()  # as in a generation worker: one OpenCV thread, the workers' malloc settings
+    setup_process()  # as in a generation worker: one OpenCV thread, malloc settings, compiled passes
     recipe = _recipe(case, size, total, method)
     library = library_for(recipe)
     out = {"sample": [], "floor": []}

@@ -155,7 +155,7 @@ def generation_stages(sizes, samples: int, method: str = "", warm: int = 4) -> N
         timed_fn._timed = True
         setattr(mod, name, timed_fn)
 
-    setup_process()  # one OpenCV thread, the workers' malloc settings
+    setup_process()  # one OpenCV thread, the workers' malloc settings, the compiled passes
     for stage, module, name in STAGES:
         wrap(stage, module, name)
     root = Path(__file__).resolve().parents[1]
